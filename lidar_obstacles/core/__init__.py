@@ -1,0 +1,1 @@
+"""Algorithms: pure NumPy / SciPy / scikit-learn. Never imports rclpy or message packages."""

@@ -1,0 +1,1 @@
+"""Input/output: PointCloud2 <-> NumPy, bags, LAS/LAZ, GeoTIFF. No rclpy."""

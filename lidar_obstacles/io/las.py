@@ -1,0 +1,99 @@
+"""LAS/LAZ reading (laspy with the lazrs backend) into plain NumPy.
+
+The survey is returned as one structured array so the rest of the package sees the same
+kind of points whether they came from a file, a bag or the simulator.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lidar_obstacles.errors import LasError
+
+# Fields carried from LAS into PointCloud2, with the dtype they get there.
+LAS_FIELDS: tuple[tuple[str, str], ...] = (
+    ("intensity", "<u2"),
+    ("return_number", "u1"),
+    ("number_of_returns", "u1"),
+    ("classification", "u1"),
+    ("gps_time", "<f8"),
+)
+
+
+@dataclass(frozen=True)
+class LasCloud:
+    """A whole LAS/LAZ survey.
+
+    points: (N,) structured array with ``x y z`` float64 (metres, file CRS) and the
+        ``LAS_FIELDS`` the file has (gps_time only when the point format has it).
+    crs_wkt: the file's CRS as WKT, or "" when the file states none.
+    epsg: the EPSG code when one can be read from the CRS records, else None.
+    has_gps_time: whether the point format records GPS time.
+    """
+
+    points: np.ndarray
+    crs_wkt: str
+    epsg: int | None
+    has_gps_time: bool
+
+    @property
+    def xyz(self) -> np.ndarray:
+        """(N, 3) float64 coordinates in metres."""
+        return np.column_stack([self.points["x"], self.points["y"], self.points["z"]])
+
+
+def _crs_from_vlrs(header) -> tuple[str, int | None]:
+    """WKT and EPSG from the file's CRS records, without pyproj."""
+    wkt = ""
+    epsg = None
+    for vlr in list(header.vlrs) + list(getattr(header, "evlrs", None) or []):
+        rid = getattr(vlr, "record_id", None)
+        if rid == 2112:  # OGC coordinate system WKT
+            raw = getattr(vlr, "string", None) or getattr(vlr, "record_data", b"")
+            wkt = raw.decode("utf-8", "replace") if isinstance(raw, bytes) else str(raw)
+            wkt = wkt.strip("\x00 ")
+        elif rid == 34735:  # GeoKeyDirectory: look for ProjectedCSTypeGeoKey / GeographicType
+            for key in getattr(vlr, "geo_keys", []):
+                if key.id in (3072, 2048) and key.tiff_tag_location == 0 and key.value_offset:
+                    if key.value_offset not in (0, 32767):
+                        epsg = int(key.value_offset)
+    if epsg is None and wkt:
+        import re
+
+        found = re.findall(r'AUTHORITY\["EPSG","(\d+)"\]', wkt)
+        if found:
+            epsg = int(found[-1])
+    return wkt, epsg
+
+
+def read_las(path: str | Path) -> LasCloud:
+    """Read a LAS or LAZ file into a :class:`LasCloud`.
+
+    Raises LasError (one line naming the file and the problem) for a missing, unreadable
+    or empty file.
+    """
+    import laspy
+
+    path = Path(path)
+    if not path.is_file():
+        raise LasError(f"LAS file not found: {path}")
+    try:
+        las = laspy.read(str(path))
+    except Exception as exc:  # laspy raises many types for corrupt files
+        raise LasError(f"cannot read LAS file {path}: {exc}".splitlines()[0]) from None
+    n = len(las.points)
+    if n == 0:
+        raise LasError(f"LAS file has no points: {path}")
+    names = set(las.point_format.dimension_names)
+    dtype = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    dtype += [(name, dt) for name, dt in LAS_FIELDS if name in names]
+    points = np.empty(n, dtype=dtype)
+    points["x"] = np.asarray(las.x, dtype=np.float64)
+    points["y"] = np.asarray(las.y, dtype=np.float64)
+    points["z"] = np.asarray(las.z, dtype=np.float64)
+    for name, _ in dtype[3:]:
+        points[name] = np.asarray(las[name])
+    wkt, epsg = _crs_from_vlrs(las.header)
+    return LasCloud(points=points, crs_wkt=wkt, epsg=epsg, has_gps_time="gps_time" in names)
