@@ -209,6 +209,18 @@ class KmeansConfig:
     tol: float = param(1e-4, "relative centre shift that ends a run", min=1e-12, max=1.0,
                        log_scale=True)
     seed: int = param(0, "random seed", min=0, max=2**31 - 1)
+    ground_window: float = param(
+        10.0, "clusters are ranked by their points' median height above the lowest point "
+        "within about this distance; the lowest cluster is ground", "m", min=0.5, max=500.0)
+    ground_max_height: float = param(
+        1.0, "`two_stage`: a first-stage cluster contributes its lowest intensity class "
+        "only if that class lies at most this far above the local minimum", "m",
+        min=0.0, max=100.0)
+    tin_threshold: float = param(
+        0.5, "TIN outlier check: a ground candidate further than this from the TIN of its "
+        "neighbours (and the worst among them) is dropped", "m", min=0.01, max=50.0)
+    tin_rounds: int = param(5, "TIN outlier checks are repeated at most this often",
+                            min=0, max=100)
 
 
 @dataclass(frozen=True)
@@ -375,11 +387,11 @@ def coerce(info: ParamInfo, value: Any) -> Any:
         if not isinstance(value, str):
             raise ConfigError(f"parameter '{info.name}': expected a string, got {value!r}")
         if spec.choices and value not in spec.choices:
-            raise ConfigError(f"parameter '{info.name}': {value!r} is not one of "
-                              f"{', '.join(spec.choices)}")
+            raise ConfigError(f"parameter '{info.name}': {value!r} is not "
+                              f"{spec.range_text()}")
         return value
     if spec.min is not None and value < spec.min or spec.max is not None and value > spec.max:
-        raise ConfigError(f"parameter '{info.name}': {value!r} is outside its range "
+        raise ConfigError(f"parameter '{info.name}': {value!r} is outside its "
                           f"{spec.range_text()}")
     return value
 
@@ -480,7 +492,7 @@ def dump_ros_yaml(cfg: Any, node_name: str = "/**") -> str:
         if spec.unit:
             note += f" [{spec.unit}]"
         if spec.range_text():
-            note += f" {spec.range_text()}"
+            note += f"; {spec.range_text()}"
         if spec.read_only:
             note += " (read-only)"
         if len(parts) == 1:
@@ -492,3 +504,24 @@ def dump_ros_yaml(cfg: Any, node_name: str = "/**") -> str:
                 section = parts[0]
             lines.append(f"      {parts[1]}: {_yaml_scalar(value)}  # {note}")
     return "\n".join(lines) + "\n"
+
+
+def write_config_files(folder: str | Path) -> list[Path]:
+    """Write ``<node>.yaml`` for every node from the schema (what ``config/`` holds)."""
+    folder = Path(folder)
+    written = []
+    for node, cls in NODE_CONFIGS.items():
+        path = folder / f"{node}.yaml"
+        header = (f"# Parameters of `{node}`, generated from lidar_obstacles/config.py\n"
+                  f"# (python -m lidar_obstacles.config config/). Each line: default, then\n"
+                  f"# description [unit] and range. Load with --ros-args --params-file.\n")
+        path.write_text(header + dump_ros_yaml(cls(), node))
+        written.append(path)
+    return written
+
+
+if __name__ == "__main__":
+    import sys
+
+    for written_path in write_config_files(sys.argv[1] if len(sys.argv) > 1 else "config"):
+        print(written_path)

@@ -1,0 +1,125 @@
+"""`lidar-obstacles`: the command-line tool.
+
+Each subcommand prints a JSON summary on stdout; progress bars go to stderr. Bad input of
+any kind ends with one line on stderr naming the problem and exit status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from lidar_obstacles.errors import LidarObstaclesError
+
+SCENES = ("mixed", "corridor", "urban", "forest")
+
+
+def _positive(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="lidar-obstacles", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    s = sub.add_parser("demo", help="simulate a UAV flight and run the whole job on it")
+    s.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
+    s.add_argument("--scene", choices=SCENES, default="mixed")
+    s.add_argument("--duration", type=_positive, default=20.0, help="flight seconds")
+    s.add_argument("--seed", type=int, default=0)
+
+    s = sub.add_parser("simulate", help="write a labelled synthetic UAV flight bag")
+    s.add_argument("out", type=Path, metavar="OUT_BAG")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--scene", choices=SCENES, default="mixed")
+    s.add_argument("--duration", type=_positive, default=20.0, help="seconds of flight")
+    s.add_argument("--frame", choices=("map", "sensor"), default="map",
+                   help="clouds in the map frame, or in the sensor frame (use odometry)")
+    s.add_argument("--rate", type=_positive, default=10.0, help="clouds per second")
+    s.add_argument("--points", type=int, default=50_000, help="points per cloud")
+    s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+
+    s = sub.add_parser("las2bag", help="stream a LAS/LAZ survey as PointCloud2 messages")
+    s.add_argument("src", type=Path, metavar="IN.las")
+    s.add_argument("out", type=Path, metavar="OUT_BAG")
+    s.add_argument("--slice-seconds", type=_positive, default=0.1,
+                   help="GPS-time slice per message (and stamp spacing otherwise)")
+    s.add_argument("--tile-size", type=_positive, default=None,
+                   help="cut square tiles of this edge (m) instead of GPS slices/strips")
+    s.add_argument("--strip-width", type=_positive, default=10.0,
+                   help="without GPS time: strips of this width (m) along the longer axis")
+    s.add_argument("--topic", default="/points")
+    s.add_argument("--frame-id", default="map")
+    s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+
+    s = sub.add_parser("replay", help="run the pipeline offline on every cloud of a bag")
+    s.add_argument("src", type=Path, metavar="IN_BAG")
+    s.add_argument("out", type=Path, metavar="OUT_BAG")
+    s.add_argument("--topic", default=None, help="PointCloud2 topic (default: the only/biggest)")
+    s.add_argument("--params-file", type=Path, default=None, help="ROS 2 params YAML")
+    s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    s.add_argument("--no-dem", action="store_true", help="skip the DEM builder")
+
+    s = sub.add_parser("play", help="publish a bag into the live ROS graph")
+    s.add_argument("src", type=Path, metavar="IN_BAG")
+    s.add_argument("--rate", type=_positive, default=1.0, help="speed factor")
+    s.add_argument("--loop", action="store_true")
+    s.add_argument("--topics", nargs="+", default=None)
+
+    s = sub.add_parser("export-dem", help="build the DEM of a bag and write a GeoTIFF")
+    s.add_argument("src", type=Path, metavar="IN_BAG")
+    s.add_argument("out", type=Path, metavar="OUT.tif")
+    s.add_argument("--topic", default=None)
+    s.add_argument("--params-file", type=Path, default=None)
+    s.add_argument("--crs", default=None, help="e.g. EPSG:32632 (default: from the bag)")
+    return p
+
+
+def run(args: argparse.Namespace) -> dict:
+    from lidar_obstacles.ros import offline
+
+    if args.command == "simulate":
+        return offline.simulate(args.out, scene=args.scene, seed=args.seed,
+                                duration=args.duration, frame=args.frame, rate=args.rate,
+                                points_per_frame=args.points, storage=args.storage)
+    if args.command == "las2bag":
+        return offline.las2bag(args.src, args.out, slice_seconds=args.slice_seconds,
+                               tile_size=args.tile_size, strip_width=args.strip_width,
+                               topic=args.topic, frame_id=args.frame_id, storage=args.storage)
+    if args.command == "replay":
+        return offline.replay(args.src, args.out, topic=args.topic,
+                              params_file=args.params_file, storage=args.storage,
+                              with_dem=not args.no_dem)
+    if args.command == "play":
+        return offline.play(args.src, rate=args.rate, loop=args.loop, topics=args.topics)
+    if args.command == "export-dem":
+        return offline.export_dem(args.src, args.out, topic=args.topic,
+                                  params_file=args.params_file, crs=args.crs)
+    if args.command == "demo":
+        from lidar_obstacles.demo import run_demo
+
+        return run_demo(args.out, scene=args.scene, duration=args.duration, seed=args.seed)
+    raise AssertionError(args.command)  # argparse only lets known commands through
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        summary = run(args)
+    except LidarObstaclesError as exc:
+        print(f"lidar-obstacles {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"lidar-obstacles {args.command}: interrupted", file=sys.stderr)
+        return 130
+    from lidar_obstacles.ros.offline import write_json
+
+    write_json(summary)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

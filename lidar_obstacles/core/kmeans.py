@@ -1,0 +1,429 @@
+"""K-means ground extraction for the DEM (Zhao et al. 2019, methods.md section 2).
+
+The paper standardises intensity, runs K-means for k = 1..l, picks k at the elbow of the
+SSE curve, keeps the lowest SSE of many restarts, chooses the ground cluster by eye and
+removes outliers by building TINs repeatedly. Here every step is automatic:
+
+- ``standardise``: zero mean, unit standard deviation (N - 1 in the denominator).
+- ``kmeans``: K-means++ seeding and Lloyd iterations, ``restarts`` runs, lowest SSE kept.
+  One-dimensional features (intensity) take an exact fast path: the data are reduced to
+  their sorted distinct values with counts, clusters of sorted 1-D data are intervals, so
+  an iteration costs O(k log n) with prefix sums instead of O(n k).
+- ``elbow_kmeans``: the SSE sweep and the knee as the point farthest below the chord of the
+  normalised curve (Kneedle).
+- ``kmeans_ground``: the ground cluster is the one whose points lie lowest above the local
+  minimum of the cloud (ground is the lower envelope; vegetation, roofs and wires sit above
+  it), then ``tin_outlier_filter`` removes spikes and pits.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import Delaunay, QhullError, cKDTree
+
+from lidar_obstacles.config import KmeansConfig
+from lidar_obstacles.errors import CloudFormatError
+
+log = logging.getLogger(__name__)
+
+# A "real" intensity has many levels; fewer distinct values than this means a flag or a
+# constant (ISPRS samples repeat the label in intensity, the AHN corridor has zeros).
+MIN_INTENSITY_LEVELS = 8
+
+
+def standardise(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Zero-mean, unit-variance copy of each column: (t - mean) / std, std with N - 1.
+
+    values: (N,) or (N, D) numbers. Returns (standardised float64 of the same shape,
+    mean (D,), std (D,)). A constant column (or N < 2) has std reported as 0 and is
+    returned as zeros, so it cannot dominate or break a distance.
+    """
+    arr = np.asarray(values, dtype=np.float64)
+    flat = arr.reshape(len(arr), -1)
+    mean = flat.mean(axis=0) if len(flat) else np.zeros(flat.shape[1])
+    std = flat.std(axis=0, ddof=1) if len(flat) > 1 else np.zeros(flat.shape[1])
+    safe = np.where(std > 0, std, 1.0)
+    out = (flat - mean) / safe
+    out[:, std == 0] = 0.0
+    return out.reshape(arr.shape), mean, std
+
+
+@dataclass(frozen=True)
+class KmeansResult:
+    """The best of the restarts of one K-means.
+
+    labels: (N,) int32 cluster of each sample. centres: (k, D) float64. sse: within-cluster
+    sum of squared distances. n_iter: Lloyd iterations of the kept run.
+    """
+
+    labels: np.ndarray
+    centres: np.ndarray
+    sse: float
+    n_iter: int
+
+    @property
+    def k(self) -> int:
+        return len(self.centres)
+
+
+def _kmeanspp_1d(xs: np.ndarray, w: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
+    """K-means++ (D^2-weighted) seeds of weighted sorted 1-D values."""
+    centres = [xs[np.searchsorted(np.cumsum(w), rng.random() * w.sum(), side="right")
+                  .clip(0, len(xs) - 1)]]
+    d2 = (xs - centres[0]) ** 2
+    for _ in range(1, k):
+        cum = np.cumsum(w * d2)
+        if cum[-1] <= 0:  # fewer distinct values than k: repeat one, it ends up empty
+            centres.append(centres[-1])
+            continue
+        i = min(int(np.searchsorted(cum, rng.random() * cum[-1], side="right")), len(xs) - 1)
+        centres.append(xs[i])
+        d2 = np.minimum(d2, (xs - xs[i]) ** 2)
+    return np.sort(np.asarray(centres, dtype=np.float64))
+
+
+def _lloyd_1d(xs: np.ndarray, prefix: tuple[np.ndarray, np.ndarray, np.ndarray],
+              centres: np.ndarray, max_iter: int, shift_tol: float) -> tuple[np.ndarray, float, int]:
+    """Exact Lloyd iterations on sorted distinct values with prefix sums of w, w x, w x^2.
+
+    Clusters of sorted 1-D data are intervals bounded by the midpoints between sorted
+    centres, so sums per cluster are differences of prefix sums.
+    """
+    cw, cs, cq = prefix
+    n_iter = 0
+    for n_iter in range(1, max_iter + 1):
+        bounds = np.searchsorted(xs, 0.5 * (centres[:-1] + centres[1:]))
+        edges = np.concatenate([[0], bounds, [len(xs)]])
+        wsum = cw[edges[1:]] - cw[edges[:-1]]
+        ssum = cs[edges[1:]] - cs[edges[:-1]]
+        new = np.where(wsum > 0, ssum / np.where(wsum > 0, wsum, 1.0), centres)
+        new.sort()
+        shift = float(np.sum((new - centres) ** 2))
+        centres = new
+        if shift <= shift_tol:
+            break
+    bounds = np.searchsorted(xs, 0.5 * (centres[:-1] + centres[1:]))
+    edges = np.concatenate([[0], bounds, [len(xs)]])
+    wsum = cw[edges[1:]] - cw[edges[:-1]]
+    ssum = cs[edges[1:]] - cs[edges[:-1]]
+    qsum = cq[edges[1:]] - cq[edges[:-1]]
+    sse = float(np.sum(qsum - np.where(wsum > 0, ssum ** 2 / np.where(wsum > 0, wsum, 1.0), 0.0)))
+    return centres, max(sse, 0.0), n_iter
+
+
+def _kmeans_1d(x: np.ndarray, k: int, restarts: int, max_iter: int, tol: float,
+               rng: np.random.Generator) -> KmeansResult:
+    xs, inverse, counts = np.unique(x, return_inverse=True, return_counts=True)
+    w = counts.astype(np.float64)
+    zero = np.zeros(1)
+    prefix = (np.concatenate([zero, np.cumsum(w)]), np.concatenate([zero, np.cumsum(w * xs)]),
+              np.concatenate([zero, np.cumsum(w * xs * xs)]))
+    shift_tol = tol * float(np.var(x))
+    runs = [_lloyd_1d(xs, prefix, _kmeanspp_1d(xs, w, k, rng), max_iter, shift_tol)
+            for _ in range(restarts)]
+    centres, sse, n_iter = min(runs, key=lambda run: run[1])
+    labels_distinct = np.searchsorted(0.5 * (centres[:-1] + centres[1:]), xs, side="right")
+    return KmeansResult(labels=labels_distinct[inverse].astype(np.int32),
+                        centres=centres[:, None], sse=sse, n_iter=n_iter)
+
+
+def _sqdist(x: np.ndarray, x2: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """(N, k) squared distances via |x|^2 - 2 x.c + |c|^2 (one matrix product)."""
+    d = x2[:, None] - 2.0 * (x @ centres.T) + np.einsum("kd,kd->k", centres, centres)[None, :]
+    return np.maximum(d, 0.0, out=d)
+
+
+def _kmeans_nd(x: np.ndarray, k: int, restarts: int, max_iter: int, tol: float,
+               rng: np.random.Generator) -> KmeansResult:
+    n, dim = x.shape
+    x2 = np.einsum("nd,nd->n", x, x)
+    shift_tol = tol * float(np.mean(np.var(x, axis=0)))
+    runs = []
+    for _ in range(restarts):
+        # K-means++ seeding: each new centre drawn with probability proportional to D^2.
+        centres = np.empty((k, dim))
+        centres[0] = x[rng.integers(n)]
+        d2 = np.sum((x - centres[0]) ** 2, axis=1)
+        for j in range(1, k):
+            cum = np.cumsum(d2)
+            i = (min(int(np.searchsorted(cum, rng.random() * cum[-1], side="right")), n - 1)
+                 if cum[-1] > 0 else int(rng.integers(n)))
+            centres[j] = x[i]
+            d2 = np.minimum(d2, np.sum((x - x[i]) ** 2, axis=1))
+        n_iter = 0
+        for n_iter in range(1, max_iter + 1):
+            dist = _sqdist(x, x2, centres)
+            labels = np.argmin(dist, axis=1)
+            counts = np.bincount(labels, minlength=k).astype(np.float64)
+            sums = np.stack([np.bincount(labels, weights=x[:, c], minlength=k)
+                             for c in range(dim)], axis=1)
+            new = np.where(counts[:, None] > 0, sums / np.maximum(counts, 1.0)[:, None], centres)
+            empty = np.flatnonzero(counts == 0)
+            if len(empty):  # an empty cluster restarts at the points worst served
+                far = np.argsort(dist[np.arange(n), labels])[::-1][:len(empty)]
+                new[empty[:len(far)]] = x[far]
+            shift = float(np.sum((new - centres) ** 2))
+            centres = new
+            if shift <= shift_tol:
+                break
+        dist = _sqdist(x, x2, centres)
+        labels = np.argmin(dist, axis=1)
+        runs.append(KmeansResult(labels=labels.astype(np.int32), centres=centres,
+                                 sse=float(dist[np.arange(n), labels].sum()), n_iter=n_iter))
+    return min(runs, key=lambda run: run.sse)
+
+
+def kmeans(x: np.ndarray, k: int, *, restarts: int = 10, max_iter: int = 300,
+           tol: float = 1e-4, rng: np.random.Generator | int | None = 0) -> KmeansResult:
+    """K-means (squared Euclidean) with K-means++ seeding, best of ``restarts`` runs.
+
+    x: (N,) or (N, D) float features (standardise them first). k: clusters, 1 <= k <= N.
+    A run stops after ``max_iter`` Lloyd iterations or when the summed squared centre shift
+    is below ``tol`` times the mean feature variance (scikit-learn's convention).
+    Deterministic for a given seed / Generator. Raises CloudFormatError for bad input.
+    """
+    arr = np.asarray(x, dtype=np.float64)
+    if arr.ndim == 1:
+        arr = arr[:, None]
+    if arr.ndim != 2 or len(arr) == 0:
+        raise CloudFormatError(f"kmeans: expected (N,) or (N, D) features with N > 0, got "
+                               f"shape {np.shape(x)}")
+    if not np.all(np.isfinite(arr)):
+        raise CloudFormatError("kmeans: features contain NaN or Inf")
+    if not 1 <= k <= len(arr):
+        raise CloudFormatError(f"kmeans: k={k} must be between 1 and N={len(arr)}")
+    if restarts < 1 or max_iter < 1:
+        raise CloudFormatError(f"kmeans: restarts={restarts} and max_iter={max_iter} must be >= 1")
+    gen = np.random.default_rng(rng)
+    if arr.shape[1] == 1:
+        return _kmeans_1d(arr[:, 0], k, restarts, max_iter, tol, gen)
+    return _kmeans_nd(arr, k, restarts, max_iter, tol, gen)
+
+
+def knee_index(values: np.ndarray) -> int:
+    """Index of the knee of a decreasing curve: farthest below the chord (Kneedle).
+
+    values: (K,) e.g. the SSE for k = 1..K. Both axes are scaled to [0, 1]; the knee is the
+    point with the largest vertical distance below the straight line from the first to
+    the last point. A flat curve (no decrease) gives 0.
+    """
+    y = np.asarray(values, dtype=np.float64)
+    if len(y) < 3 or not y[0] > y.min():
+        return 0
+    yn = (y - y.min()) / (y[0] - y.min())
+    xn = np.linspace(0.0, 1.0, len(y))
+    return int(np.argmax((1.0 - xn) - yn))
+
+
+@dataclass(frozen=True)
+class ElbowResult:
+    """K-means with k chosen at the elbow. sse: (max_k,) best SSE for k = 1..max_k."""
+
+    k: int
+    sse: np.ndarray
+    result: KmeansResult
+
+
+def elbow_kmeans(x: np.ndarray, *, max_k: int = 10, restarts: int = 10, max_iter: int = 300,
+                 tol: float = 1e-4, rng: np.random.Generator | int | None = 0) -> ElbowResult:
+    """Run :func:`kmeans` for k = 1..max_k and return the clustering at the elbow.
+
+    x: (N,) or (N, D) standardised features. The sweep stops early once the SSE is 0
+    (every distinct value its own cluster). Deterministic for a given seed.
+    """
+    gen = np.random.default_rng(rng)
+    n = len(np.asarray(x))
+    results: list[KmeansResult] = []
+    for k in range(1, max(1, min(max_k, n)) + 1):
+        results.append(kmeans(x, k, restarts=restarts, max_iter=max_iter, tol=tol, rng=gen))
+        if results[-1].sse <= 0.0:
+            break
+    sse = np.array([r.sse for r in results])
+    best = knee_index(sse) if len(sse) >= 3 else len(sse) - 1
+    return ElbowResult(k=best + 1, sse=sse, result=results[best])
+
+
+# --------------------------------------------------------------------------- ground
+
+
+def height_above_local_min(xyz: np.ndarray, window: float) -> np.ndarray:
+    """(N,) float64: z minus the lowest z within about ``window`` metres (a 3 x 3 block of
+    window/2 cells around the point's cell). The lower envelope of the cloud is ground."""
+    cell = max(window / 2.0, 1e-6)
+    ij = np.floor((xyz[:, :2] - xyz[:, :2].min(axis=0)) / cell).astype(np.int64)
+    shape = tuple(ij.max(axis=0) + 1)
+    flat = np.ravel_multi_index((ij[:, 0], ij[:, 1]), shape)
+    lowest = np.full(int(np.prod(shape)), np.inf)
+    np.minimum.at(lowest, flat, xyz[:, 2])
+    lowest = ndimage.minimum_filter(lowest.reshape(shape), size=3, mode="nearest").ravel()
+    return xyz[:, 2] - lowest[flat]
+
+
+def geometric_features(xyz: np.ndarray, *, window: float, neighbours: int = 10) -> np.ndarray:
+    """(N, 3) float64 per-point features for clustering without intensity.
+
+    Columns: height above the local minimum (m), roughness = sqrt of the smallest
+    eigenvalue of the k-neighbourhood covariance (m), and |normal z| of that neighbourhood.
+    Ground is low, smooth and level; vegetation rough; roofs high; walls steep.
+    """
+    n = len(xyz)
+    k = int(min(neighbours, n))
+    _, idx = cKDTree(xyz).query(xyz, k=k, workers=-1)
+    idx = idx.reshape(n, k)
+    nb = xyz[idx] - xyz[idx].mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", nb, nb) / max(k - 1, 1)
+    evals, evecs = np.linalg.eigh(cov)
+    rough = np.sqrt(np.maximum(evals[:, 0], 0.0))
+    normal_z = np.abs(evecs[:, 2, 0])
+    return np.column_stack([height_above_local_min(xyz, window), rough, normal_z])
+
+
+def tin_outlier_filter(xyz: np.ndarray, *, threshold: float, max_rounds: int) -> np.ndarray:
+    """(N,) bool: points kept after repeated TIN checks (the paper's outlier removal).
+
+    Each round triangulates the kept points in XY, predicts every point from its Delaunay
+    neighbours (inverse-distance mean) and drops the points whose |residual| exceeds
+    ``threshold`` (m) and is the largest in their neighbourhood: a spike makes its
+    neighbours' residuals large too, so only the local extreme goes and the others are
+    judged again on the next TIN. Stops when nothing is dropped or after ``max_rounds``.
+    Fewer than 4 points or a degenerate (collinear) set: nothing is dropped.
+    """
+    keep = np.ones(len(xyz), dtype=bool)
+    for _ in range(max_rounds):
+        idx = np.flatnonzero(keep)
+        if len(idx) < 4:
+            break
+        pts = xyz[idx]
+        try:
+            tri = Delaunay(pts[:, :2])
+        except (QhullError, ValueError):
+            break
+        indptr, nbrs = tri.vertex_neighbor_vertices
+        owner = np.repeat(np.arange(len(idx)), np.diff(indptr))
+        d = np.hypot(*(pts[owner, :2] - pts[nbrs, :2]).T)
+        w = 1.0 / np.maximum(d, 1e-9)
+        wsum = np.bincount(owner, weights=w, minlength=len(idx))
+        pred = np.bincount(owner, weights=w * pts[nbrs, 2], minlength=len(idx))
+        has = wsum > 0
+        resid = np.zeros(len(idx))
+        resid[has] = np.abs(pts[has, 2] - pred[has] / wsum[has])
+        nb_max = np.zeros(len(idx))
+        np.maximum.at(nb_max, owner, resid[nbrs])
+        drop = (resid > threshold) & (resid >= nb_max)
+        if not drop.any():
+            break
+        keep[idx[drop]] = False
+    return keep
+
+
+@dataclass(frozen=True)
+class KmeansGround:
+    """Ground found by K-means.
+
+    ground: (N,) bool final ground (after TIN checks). candidates: (N,) bool the chosen
+    cluster(s) before the TIN checks. features: what was clustered (`intensity`,
+    `two_stage` or `geometric`). k: clusters at the elbow (first stage for two_stage).
+    sse: (K,) the elbow curve. cluster_height: (k,) median height above the local
+    minimum of each (first-stage) cluster (m). ground_cluster: index of the chosen cluster
+    (-1 for two_stage, whose ground gathers one class per first-stage cluster). reason: why
+    the requested features were not used ("" when they were).
+    """
+
+    ground: np.ndarray
+    candidates: np.ndarray
+    features: str
+    k: int
+    sse: np.ndarray
+    cluster_height: np.ndarray
+    ground_cluster: int
+    reason: str = ""
+
+
+def intensity_problem(intensity: np.ndarray | None) -> str:
+    """Why an intensity array cannot be clustered on ("" when it can)."""
+    if intensity is None:
+        return "no intensity given"
+    levels = len(np.unique(np.asarray(intensity)))
+    if levels < MIN_INTENSITY_LEVELS:
+        return (f"intensity has only {levels} distinct value(s), fewer than "
+                f"{MIN_INTENSITY_LEVELS}: constant or a flag, not a measurement")
+    return ""
+
+
+def _cluster_heights(labels: np.ndarray, k: int, height: np.ndarray) -> np.ndarray:
+    """(k,) median of ``height`` per cluster (inf for an empty cluster)."""
+    out = np.full(k, np.inf)
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], np.arange(k + 1))
+    sorted_h = height[order]
+    for c in range(k):  # k <= 30 clusters
+        if bounds[c + 1] > bounds[c]:
+            out[c] = float(np.median(sorted_h[bounds[c]:bounds[c + 1]]))
+    return out
+
+
+def kmeans_ground(xyz: np.ndarray, *, cfg: KmeansConfig, intensity: np.ndarray | None = None,
+                  rng: np.random.Generator | int | None = None) -> KmeansGround:
+    """Ground points by K-means clustering (the paper's method, with automatic choices).
+
+    xyz: (N, 3) float64 metres. intensity: (N,) only when the caller knows it is a real
+    measured intensity (pass None for ISPRS, whose intensity repeats the label); an
+    intensity with fewer than 8 distinct values is treated as absent. When intensity is
+    absent the clustering runs on :func:`geometric_features`, ``reason`` says why and one
+    warning is logged. rng defaults to ``cfg.seed``.
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise CloudFormatError(f"kmeans_ground: expected (N, 3) points, got {xyz.shape}")
+    n = len(xyz)
+    gen = np.random.default_rng(cfg.seed if rng is None else rng)
+    if n < 4:
+        all_ground = np.ones(n, dtype=bool)
+        return KmeansGround(all_ground, all_ground, cfg.features, 1, np.zeros(1),
+                            np.zeros(1), 0, reason=f"only {n} points: all taken as ground")
+    height = height_above_local_min(xyz, cfg.ground_window)
+    features, reason = cfg.features, ""
+    if features in ("intensity", "two_stage"):
+        reason = intensity_problem(intensity)
+        if reason:
+            log.warning("kmeans ground: %s; clustering on geometric features instead", reason)
+            features = "geometric"
+    sweep = dict(max_k=cfg.max_k, restarts=cfg.restarts, max_iter=cfg.max_iter, tol=cfg.tol,
+                 rng=gen)
+    if features == "two_stage":
+        # Stage 1 splits the survey into compact XYZ blobs; stage 2 finds, in each blob,
+        # the intensity class lying lowest. A blob's class counts as ground only when it
+        # lies close to the local minimum, so blobs of pure roof or canopy contribute none.
+        first = elbow_kmeans(standardise(xyz)[0], **sweep)
+        labels1 = first.result.labels
+        candidates = np.zeros(n, dtype=bool)
+        for c in range(first.k):
+            members = np.flatnonzero(labels1 == c)
+            if len(members) < 2:
+                continue
+            second = elbow_kmeans(standardise(intensity[members])[0], **sweep)
+            heights = _cluster_heights(second.result.labels, second.k, height[members])
+            low = int(np.argmin(heights))
+            if heights[low] <= cfg.ground_max_height:
+                candidates[members[second.result.labels == low]] = True
+        k, sse = first.k, first.sse
+        cluster_height = _cluster_heights(labels1, first.k, height)
+        ground_cluster = -1
+    else:
+        feats = (intensity if features == "intensity"
+                 else geometric_features(xyz, window=cfg.ground_window))
+        elbow = elbow_kmeans(standardise(np.asarray(feats, dtype=np.float64))[0], **sweep)
+        cluster_height = _cluster_heights(elbow.result.labels, elbow.k, height)
+        ground_cluster = int(np.argmin(cluster_height))
+        candidates = elbow.result.labels == ground_cluster
+        k, sse = elbow.k, elbow.sse
+    ground = np.zeros(n, dtype=bool)
+    idx = np.flatnonzero(candidates)
+    ground[idx[tin_outlier_filter(xyz[idx], threshold=cfg.tin_threshold,
+                                  max_rounds=cfg.tin_rounds)]] = True
+    return KmeansGround(ground=ground, candidates=candidates, features=features, k=k, sse=sse,
+                        cluster_height=cluster_height, ground_cluster=ground_cluster,
+                        reason=reason)

@@ -1,0 +1,174 @@
+"""The pipelines the nodes and `replay` share: one object per node, fed one cloud at a time.
+
+`ObstacleDetector.process` runs ground filtering (with the rolling ground context of earlier
+messages), obstacle classification and the clearance grid. `DemPipeline.process` finds the
+ground (K-means or the detector's filter) and updates the rolling DEM. Results are values;
+the only long-lived state is the ground context and the rolling DEM, each one explicit object.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
+
+
+@dataclass(frozen=True)
+class ClearanceGrid:
+    """Occupancy-style grid: tallest obstacle above ground per cell scaled to 0-100, -1 unknown.
+
+    cells: (rows, cols) int8, row = y index. origin: (2,) float64, x/y of the lower-left
+    corner of cell (0, 0), metres. resolution: metres per cell.
+    """
+
+    cells: np.ndarray
+    origin: np.ndarray
+    resolution: float
+
+
+@dataclass(frozen=True)
+class ObstacleResult:
+    """What the obstacle detector found in one cloud of N points.
+
+    ground: (N,) bool. classes: (N,) uint8 ASPRS code (2 ground). height_above_ground: (N,)
+    float32 metres (NaN where no surface). object_id: (N,) int32, -1 outside objects.
+    objects: the obstacle objects (boxes). timings: seconds per stage, plus "total".
+    """
+
+    ground: np.ndarray
+    classes: np.ndarray
+    height_above_ground: np.ndarray
+    object_id: np.ndarray
+    objects: tuple
+    clearance: ClearanceGrid | None
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+class ObstacleDetector:
+    """Ground, obstacles and clearance for a stream of clouds in a gravity-aligned frame."""
+
+    def __init__(self, cfg: ObstacleDetectorConfig | None = None) -> None:
+        from lidar_obstacles.core.context import GroundContext
+
+        self.cfg = cfg or ObstacleDetectorConfig()
+        self.context = GroundContext(self.cfg.context)
+        self._rng = np.random.default_rng(self.cfg.ransac.seed)
+
+    def reconfigure(self, cfg: ObstacleDetectorConfig) -> None:
+        """Take new parameters for the next message; the ground context is kept when its
+        own parameters did not change."""
+        from lidar_obstacles.core.context import GroundContext
+
+        if cfg.context != self.cfg.context:
+            self.context = GroundContext(cfg.context)
+        if cfg.ransac.seed != self.cfg.ransac.seed:
+            self._rng = np.random.default_rng(cfg.ransac.seed)
+        self.cfg = cfg
+
+    def process(self, xyz: np.ndarray, *, stamp: float = 0.0,
+                vehicle_xyz: np.ndarray | None = None,
+                intensity: np.ndarray | None = None,
+                return_number: np.ndarray | None = None,
+                number_of_returns: np.ndarray | None = None) -> ObstacleResult:
+        """Classify one cloud.
+
+        xyz: (N, 3) float64 metres, z up. stamp: seconds (for the ground context's age).
+        vehicle_xyz: (3,) the UAV position for the clearance grid (None: the cloud's centre).
+        """
+        from lidar_obstacles.core.ground import classify_ground
+        from lidar_obstacles.core.obstacles import classify_obstacles, clearance_grid
+
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        n = len(xyz)
+        if n == 0:
+            empty = np.zeros(0, bool)
+            return ObstacleResult(empty, np.zeros(0, np.uint8), np.zeros(0, np.float32),
+                                  np.zeros(0, np.int32), (), None, {"total": 0.0})
+        lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+        context_xyz = self.context.points_near(lo, hi, stamp)
+        t1 = time.perf_counter()
+        g = classify_ground(xyz, tiling=cfg.tiling, ground=cfg.ground, tin=cfg.tin,
+                            ransac=cfg.ransac, context_xyz=context_xyz, rng=self._rng)
+        t2 = time.perf_counter()
+        self.context.update(xyz[g.ground], stamp)
+        t3 = time.perf_counter()
+        ob = classify_obstacles(xyz, g.ground, g.height_above_ground, cfg=cfg.obstacles,
+                                intensity=intensity, return_number=return_number,
+                                number_of_returns=number_of_returns, rng=self._rng)
+        t4 = time.perf_counter()
+        centre = (np.asarray(vehicle_xyz, float)[:2] if vehicle_xyz is not None
+                  else (lo + hi) / 2.0)
+        cells, origin, res = clearance_grid(xyz, ob.classes, g.height_above_ground,
+                                            center_xy=centre, cfg=cfg.clearance)
+        t5 = time.perf_counter()
+        timings = {"context": t1 - t0, "ground": t2 - t1, "context_update": t3 - t2,
+                   "obstacles": t4 - t3, "clearance": t5 - t4, "total": t5 - t0}
+        return ObstacleResult(
+            ground=g.ground, classes=ob.classes, height_above_ground=g.height_above_ground,
+            object_id=ob.object_id, objects=ob.objects,
+            clearance=ClearanceGrid(cells, np.asarray(origin, float), float(res)),
+            timings=timings)
+
+
+class DemPipeline:
+    """Ground selection plus the rolling DEM, for the `dem_builder` node and `replay`."""
+
+    def __init__(self, cfg: DemBuilderConfig | None = None) -> None:
+        from lidar_obstacles.core.dem import RollingDem
+
+        self.cfg = cfg or DemBuilderConfig()
+        self.dem = RollingDem(self.cfg)
+        self._context = None  # ground context of the `detector` ground source, made on first use
+
+    def reconfigure(self, cfg: DemBuilderConfig) -> None:
+        from lidar_obstacles.core.dem import RollingDem
+
+        grid_changed = (cfg.dem.resolution != self.cfg.dem.resolution
+                        or cfg.dem.extent != self.cfg.dem.extent
+                        or cfg.dem.max_cells != self.cfg.dem.max_cells)
+        self.cfg = cfg
+        if grid_changed:
+            self.dem = RollingDem(cfg)
+        else:
+            self.dem.reconfigure(cfg)
+        self._context = None
+
+    def ground_of(self, xyz: np.ndarray, *, stamp: float,
+                  intensity: np.ndarray | None) -> np.ndarray:
+        """(N,) bool ground mask by the configured `dem.ground_source`."""
+        if self.cfg.dem.ground_source == "detector":
+            from lidar_obstacles.core.context import GroundContext
+            from lidar_obstacles.core.ground import classify_ground
+
+            if self._context is None:
+                self._context = GroundContext(self.cfg.context)
+            ctx = self._context
+            lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+            g = classify_ground(xyz, tiling=self.cfg.tiling, ground=self.cfg.ground,
+                                tin=self.cfg.tin, ransac=self.cfg.ransac,
+                                context_xyz=ctx.points_near(lo, hi, stamp),
+                                rng=np.random.default_rng(self.cfg.ransac.seed))
+            ctx.update(xyz[g.ground], stamp)
+            return g.ground
+        from lidar_obstacles.core.dem import kmeans_ground
+
+        return kmeans_ground(xyz, intensity, cfg=self.cfg).ground
+
+    def process(self, xyz: np.ndarray, *, stamp: float = 0.0,
+                vehicle_xyz: np.ndarray | None = None,
+                intensity: np.ndarray | None = None) -> dict[str, float]:
+        """Add one cloud's ground to the rolling DEM. Returns timings in seconds."""
+        t0 = time.perf_counter()
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        if len(xyz) == 0:
+            return {"ground": 0.0, "update": 0.0, "total": 0.0}
+        ground = self.ground_of(xyz, stamp=stamp, intensity=intensity)
+        t1 = time.perf_counter()
+        vehicle_xy = None if vehicle_xyz is None else np.asarray(vehicle_xyz, float)[:2]
+        self.dem.update(xyz[ground], vehicle_xy, stamp)
+        t2 = time.perf_counter()
+        return {"ground": t1 - t0, "update": t2 - t1, "total": t2 - t0}

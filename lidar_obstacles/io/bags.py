@@ -1,0 +1,232 @@
+"""Bag containers through `rosbags`: read rosbag2 (mcap, sqlite3) and ROS 1 bags, write rosbag2.
+
+Only the container lives here; messages travel as serialized bytes. Reading hands out raw
+records, and :func:`deserialize` turns one into a rosbags message (pure Python, no ROS
+install needed). Writing takes CDR bytes, so the ROS layer can serialize with rclpy and
+the bag holds exactly what a live node would publish.
+
+Outputs are written to a temporary name beside the target and renamed only when complete,
+so an interrupted run never leaves a half-written bag under the requested name.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator, Sequence
+
+from lidar_obstacles.errors import BagError
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+ODOMETRY = "nav_msgs/msg/Odometry"
+
+
+def typestore():
+    """The ROS 2 Jazzy typestore of rosbags (cached)."""
+    global _TYPESTORE
+    if _TYPESTORE is None:
+        from rosbags.typesys import Stores, get_typestore
+
+        _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+    return _TYPESTORE
+
+
+_TYPESTORE = None
+
+
+@dataclass(frozen=True)
+class BagRecord:
+    """One message of a bag, still serialized.
+
+    stamp_ns: the bag's receive time in nanoseconds. raw: the serialized bytes (CDR for
+    rosbag2, ROS 1 serialization for ``.bag``), ``ros1`` tells which.
+    """
+
+    topic: str
+    msgtype: str
+    stamp_ns: int
+    raw: bytes
+    ros1: bool
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    topic: str
+    msgtype: str
+    count: int
+
+
+class BagReader:
+    """Read a rosbag2 directory / .mcap / .db3, or a ROS 1 .bag.
+
+    Use as a context manager. Every failure to open becomes a BagError with one line.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._reader: Any = None
+
+    def __enter__(self) -> "BagReader":
+        from rosbags.highlevel import AnyReader
+
+        path = self.path
+        if not path.exists():
+            raise BagError(f"bag not found: {path}")
+        # A bare .mcap/.db3 file without metadata.yaml: open its folder when that folder is the bag.
+        if path.is_file() and path.suffix in (".mcap", ".db3"):
+            if (path.parent / "metadata.yaml").is_file():
+                path = path.parent
+        try:
+            self._reader = AnyReader([path], default_typestore=typestore())
+            self._reader.open()
+        except Exception as exc:  # rosbags raises several types for corrupt or foreign files
+            self._reader = None
+            text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise BagError(f"cannot open bag {self.path}: {text}") from None
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._reader is not None:
+            try:
+                self._reader.close()
+            finally:
+                self._reader = None
+
+    @property
+    def is_ros1(self) -> bool:
+        return bool(self._reader.is2 is False)
+
+    def topics(self) -> list[TopicInfo]:
+        """Topics with their type and message count, sorted by name."""
+        counts: dict[tuple[str, str], int] = {}
+        for conn in self._reader.connections:
+            key = (conn.topic, conn.msgtype)
+            counts[key] = counts.get(key, 0) + int(conn.msgcount)
+        return [TopicInfo(t, m, c) for (t, m), c in sorted(counts.items())]
+
+    def pointcloud_topic(self, topic: str | None = None) -> str:
+        """The PointCloud2 topic to process: `topic` when given (checked), else the only
+        one, else the one with the most messages. BagError when there is none."""
+        clouds = [t for t in self.topics() if t.msgtype == POINTCLOUD2]
+        if topic is not None:
+            names = [t.topic for t in clouds]
+            if topic not in names:
+                raise BagError(f"bag {self.path} has no PointCloud2 topic '{topic}' "
+                               f"(it has: {', '.join(names) or 'none'})")
+            return topic
+        if not clouds or sum(t.count for t in clouds) == 0:
+            raise BagError(f"bag {self.path} has no PointCloud2 messages")
+        return max(clouds, key=lambda t: t.count).topic
+
+    def count(self, topics: Sequence[str]) -> int:
+        return sum(t.count for t in self.topics() if t.topic in topics)
+
+    def records(self, topics: Sequence[str] | None = None) -> Iterator[BagRecord]:
+        """Messages of the given topics (all when None) in time order."""
+        conns = [c for c in self._reader.connections if topics is None or c.topic in topics]
+        ros1 = self.is_ros1
+        try:
+            for conn, stamp, raw in self._reader.messages(connections=conns):
+                yield BagRecord(conn.topic, conn.msgtype, int(stamp), bytes(raw), ros1)
+        except BagError:
+            raise
+        except Exception as exc:
+            text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise BagError(f"bag {self.path} is truncated or corrupt: {text}") from None
+
+
+def deserialize(record: BagRecord) -> Any:
+    """A rosbags message object from a record (CDR or ROS 1). BagError when it fails."""
+    store = typestore()
+    try:
+        if record.ros1:
+            return store.deserialize_ros1(record.raw, record.msgtype)
+        return store.deserialize_cdr(record.raw, record.msgtype)
+    except Exception as exc:
+        raise BagError(f"cannot decode a {record.msgtype} message on {record.topic}: "
+                       f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+
+
+class BagWriter:
+    """Write a rosbag2 (mcap by default, sqlite3 on request) atomically.
+
+    Messages are written to ``<out>.partial-<pid>`` and the folder is renamed to ``out`` on a
+    clean exit of the context; on an exception the partial folder is removed. An existing
+    ``out`` is replaced only when the new bag is complete.
+    """
+
+    def __init__(self, path: str | Path, *, storage: str = "mcap") -> None:
+        if storage not in ("mcap", "sqlite3"):
+            raise BagError(f"unknown bag storage '{storage}' (use mcap or sqlite3)")
+        self.path = Path(path)
+        self.storage = storage
+        self._tmp = self.path.with_name(f".{self.path.name}.partial-{os.getpid()}")
+        self._writer: Any = None
+        self._conns: dict[str, Any] = {}
+
+    def __enter__(self) -> "BagWriter":
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        if not self.path.parent.is_dir():
+            raise BagError(f"output folder does not exist: {self.path.parent}")
+        if self._tmp.exists():
+            shutil.rmtree(self._tmp)
+        plugin = StoragePlugin.MCAP if self.storage == "mcap" else StoragePlugin.SQLITE3
+        self._writer = Writer(self._tmp, version=9, storage_plugin=plugin)
+        self._writer.open()
+        return self
+
+    def add_topic(self, topic: str, msgtype: str, *, transient_local: bool = False) -> None:
+        """Declare a topic before writing to it (idempotent)."""
+        if topic in self._conns:
+            return
+        qos = _offered_qos(transient_local)
+        self._conns[topic] = self._writer.add_connection(
+            topic, msgtype, typestore=typestore(), offered_qos_profiles=qos)
+
+    def write(self, topic: str, stamp_ns: int, raw: bytes) -> None:
+        """Write one serialized (CDR) message."""
+        self._writer.write(self._conns[topic], int(stamp_ns), raw)
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        try:
+            self._writer.close()
+        except Exception:
+            if exc_type is None:
+                raise
+        if exc_type is not None:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            return
+        # Name the storage file after the final folder, as ros2 bag does.
+        self._rename_storage_file()
+        if self.path.exists():
+            old = self.path.with_name(f".{self.path.name}.old-{os.getpid()}")
+            os.replace(self.path, old)
+            os.replace(self._tmp, self.path)
+            shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()
+        else:
+            os.replace(self._tmp, self.path)
+
+    def _rename_storage_file(self) -> None:
+        meta = self._tmp / "metadata.yaml"
+        text = meta.read_text()
+        for f in self._tmp.iterdir():
+            if f.suffix in (".mcap", ".db3"):
+                new = f"{self.path.name}_0{f.suffix}"
+                f.rename(self._tmp / new)
+                text = text.replace(f.name, new)
+        meta.write_text(text)
+
+
+def _offered_qos(transient_local: bool) -> list:
+    """Reliable keep-last QoS, as the nodes publish (transient-local for the DEM topics)."""
+    from rosbags.interfaces import (
+        Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime)
+
+    infinite = QosTime(sec=0, nsec=0)  # rosbag2 writes 0 for "default / infinite"
+    return [Qos(
+        history=QosHistory.KEEP_LAST, depth=1, reliability=QosReliability.RELIABLE,
+        durability=QosDurability.TRANSIENT_LOCAL if transient_local else QosDurability.VOLATILE,
+        deadline=infinite, lifespan=infinite, liveliness=QosLiveliness.AUTOMATIC,
+        liveliness_lease_duration=infinite, avoid_ros_namespace_conventions=False)]

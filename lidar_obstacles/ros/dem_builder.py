@@ -1,0 +1,72 @@
+"""`dem_builder` node: ground (K-means or the detector's filter) into a rolling DEM grid,
+published as `dem`, `dem_image` and `dem_info`, saved as GeoTIFF by the `save_dem` service."""
+from __future__ import annotations
+
+from nav_msgs.msg import MapMetaData
+from sensor_msgs.msg import Image, PointCloud2
+from std_srvs.srv import Trigger
+
+from lidar_obstacles.config import DemBuilderConfig
+from lidar_obstacles.errors import LidarObstaclesError
+from lidar_obstacles.ros.node_base import PipelineNode, output_qos, run_node
+from lidar_obstacles.ros.stages import DemStage, Pose
+
+
+class DemBuilderNode(PipelineNode):
+    config_cls = DemBuilderConfig
+
+    def __init__(self) -> None:
+        super().__init__("dem_builder")
+        self.stage = DemStage(self.cfg)
+        qos = output_qos(depth=1, transient_local=True)
+        self.pubs = {
+            "dem": self.create_publisher(PointCloud2, "dem", qos),
+            "dem_image": self.create_publisher(Image, "dem_image", qos),
+            "dem_info": self.create_publisher(MapMetaData, "dem_info", qos),
+        }
+        self._dirty = False
+        self._timer = self.create_timer(1.0 / self.cfg.dem.publish_rate, self._publish_dem)
+        self.create_service(Trigger, "save_dem", self._save_dem)
+
+    def reconfigure(self, cfg: DemBuilderConfig) -> None:
+        old_rate = self.stage.cfg.dem.publish_rate
+        self.stage.reconfigure(cfg)
+        if cfg.dem.publish_rate != old_rate:
+            self.destroy_timer(self._timer)
+            self._timer = self.create_timer(1.0 / cfg.dem.publish_rate, self._publish_dem)
+
+    def handle(self, msg: PointCloud2, pose: Pose | None) -> int:
+        stats = self.stage.process(msg, pose)
+        self._dirty = True
+        return stats["points_in"]
+
+    def _publish_dem(self) -> None:
+        if not self._dirty:
+            return
+        self._dirty = False
+        for topic, out in self.stage.dem_outputs():
+            self.pubs[topic].publish(out)
+
+    def _save_dem(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        from lidar_obstacles.io.geotiff import write_geotiff
+
+        grid = self.stage.grid()
+        path = self.cfg.export.path
+        if grid is None or grid.elevation.size == 0:
+            response.success, response.message = False, "no DEM yet: no ground received"
+            return response
+        try:
+            write_geotiff(path, grid, crs=self.cfg.export.crs)
+        except (LidarObstaclesError, OSError) as exc:
+            response.success, response.message = False, f"cannot write {path}: {exc}"
+            return response
+        response.success, response.message = True, f"wrote {path}"
+        return response
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(DemBuilderNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,108 @@
+"""Results of the core -> rclpy messages (used by the nodes and, serialized, by `replay`)."""
+from __future__ import annotations
+
+import array
+
+import numpy as np
+from builtin_interfaces.msg import Duration, Time
+from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
+from nav_msgs.msg import MapMetaData, OccupancyGrid, Odometry
+from sensor_msgs.msg import Image, PointCloud2, PointField
+from std_msgs.msg import ColorRGBA, Header
+from visualization_msgs.msg import Marker, MarkerArray
+
+from lidar_obstacles.core.classes import CLASS_COLOURS, CLASS_NAMES
+from lidar_obstacles.io.pointcloud2 import make_pointcloud2
+
+
+def header(stamp_ns: int, frame_id: str) -> Header:
+    return Header(stamp=Time(sec=int(stamp_ns // 1_000_000_000),
+                             nanosec=int(stamp_ns % 1_000_000_000)), frame_id=frame_id)
+
+
+def stamp_ns_of(h) -> int:
+    """Nanoseconds of a Header (rclpy or rosbags)."""
+    return int(h.stamp.sec) * 1_000_000_000 + int(h.stamp.nanosec)
+
+
+def cloud(points: np.ndarray, hdr: Header) -> PointCloud2:
+    """A PointCloud2 of a structured array (1-D, or 2-D for organized clouds)."""
+    return make_pointcloud2(points, header=hdr, msg_cls=PointCloud2, field_cls=PointField)
+
+
+def markers(objects, hdr: Header, lifetime_s: float = 0.0) -> MarkerArray:
+    """One box and one text label per obstacle object; the first marker clears old ones."""
+    out = [Marker(header=hdr, action=Marker.DELETEALL)]
+    life = Duration(sec=int(lifetime_s), nanosec=int((lifetime_s % 1) * 1e9))
+    for obj in objects:
+        name = CLASS_NAMES.get(int(obj.cls), "unclassified")
+        r, g, b = CLASS_COLOURS.get(int(obj.cls), (0.7, 0.7, 0.7))
+        lo, hi = np.asarray(obj.min_xyz, float), np.asarray(obj.max_xyz, float)
+        centre, size = (lo + hi) / 2.0, np.maximum(hi - lo, 0.1)
+        pose = Pose(position=Point(x=float(centre[0]), y=float(centre[1]), z=float(centre[2])),
+                    orientation=Quaternion(w=1.0))
+        out.append(Marker(header=hdr, ns=name, id=2 * int(obj.id), type=Marker.CUBE,
+                          action=Marker.ADD, pose=pose, lifetime=life,
+                          scale=Vector3(x=float(size[0]), y=float(size[1]), z=float(size[2])),
+                          color=ColorRGBA(r=r, g=g, b=b, a=0.5)))
+        label = Pose(position=Point(x=float(centre[0]), y=float(centre[1]),
+                                    z=float(hi[2]) + 1.0), orientation=Quaternion(w=1.0))
+        out.append(Marker(header=hdr, ns=name, id=2 * int(obj.id) + 1,
+                          type=Marker.TEXT_VIEW_FACING, action=Marker.ADD, pose=label,
+                          lifetime=life, scale=Vector3(z=1.5),
+                          color=ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0),
+                          text=f"{name} {obj.height_above_ground:.1f} m, "
+                               f"clearance {obj.clearance:.1f} m"))
+    return MarkerArray(markers=out)
+
+
+def _map_meta(stamp: Time, rows: int, cols: int, origin, resolution: float) -> MapMetaData:
+    return MapMetaData(map_load_time=stamp, resolution=float(resolution), width=int(cols),
+                       height=int(rows),
+                       origin=Pose(position=Point(x=float(origin[0]), y=float(origin[1])),
+                                   orientation=Quaternion(w=1.0)))
+
+
+def occupancy(cells: np.ndarray, origin, resolution: float, hdr: Header) -> OccupancyGrid:
+    """nav_msgs/OccupancyGrid from (rows, cols) int8 cells (row = y from origin)."""
+    rows, cols = cells.shape
+    return OccupancyGrid(header=hdr, info=_map_meta(hdr.stamp, rows, cols, origin, resolution),
+                         data=array.array("b", np.ascontiguousarray(cells, np.int8).tobytes()))
+
+
+def dem_messages(grid, hdr: Header) -> tuple[PointCloud2, Image, MapMetaData]:
+    """`dem` (organized cloud x y z interpolated), `dem_image` (32FC1) and `dem_info`.
+
+    Row r, column c of all three is the cell whose centre is
+    origin + ((c + 0.5) * resolution, (r + 0.5) * resolution).
+    """
+    elev = np.ascontiguousarray(grid.elevation, dtype=np.float32)
+    rows, cols = elev.shape
+    res = float(grid.resolution)
+    xs = (grid.origin[0] + (np.arange(cols) + 0.5) * res).astype(np.float32)
+    ys = (grid.origin[1] + (np.arange(rows) + 0.5) * res).astype(np.float32)
+    pts = np.empty((rows, cols), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                        ("interpolated", "u1")])
+    pts["x"] = xs[None, :]
+    pts["y"] = ys[:, None]
+    pts["z"] = elev
+    pts["interpolated"] = grid.interpolated
+    dem_cloud = cloud(pts, hdr)
+    image = Image(header=hdr, height=rows, width=cols, encoding="32FC1",
+                  is_bigendian=0, step=cols * 4)
+    image.data = array.array("B", elev.tobytes())
+    return dem_cloud, image, _map_meta(hdr.stamp, rows, cols, grid.origin, res)
+
+
+def odometry(stamp_ns: int, frame_id: str, child_frame_id: str, position, orientation,
+             velocity=None) -> Odometry:
+    """nav_msgs/Odometry of a pose (position (3,), quaternion x y z w)."""
+    msg = Odometry(header=header(stamp_ns, frame_id), child_frame_id=child_frame_id)
+    p, q = position, orientation
+    msg.pose.pose = Pose(position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                         orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]),
+                                                w=float(q[3])))
+    if velocity is not None:
+        msg.twist.twist.linear = Vector3(x=float(velocity[0]), y=float(velocity[1]),
+                                         z=float(velocity[2]))
+    return msg

@@ -1,0 +1,205 @@
+"""The frame both nodes share: parameters from the schema, input QoS that follows the
+publishers, optional odometry, diagnostics, throttled warnings for rejected clouds, and the
+Jazzy-style main with clean shutdown."""
+from __future__ import annotations
+
+import bisect
+import collections
+import sys
+import time
+from typing import Any, Callable
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from nav_msgs.msg import Odometry
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+)
+from sensor_msgs.msg import PointCloud2
+
+from lidar_obstacles.errors import ConfigError, LidarObstaclesError
+from lidar_obstacles.ros.params import declare_config, on_parameter_change
+from lidar_obstacles.ros.stages import Pose, pose_of_odometry
+
+WARN_THROTTLE_S = 5.0
+
+
+def output_qos(depth: int = 2, transient_local: bool = False) -> QoSProfile:
+    """Outputs: reliable (both kinds of subscriber connect), keep-last, small depth."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=(DurabilityPolicy.TRANSIENT_LOCAL if transient_local
+                                  else DurabilityPolicy.VOLATILE))
+
+
+class PoseBuffer:
+    """Odometry poses of the last few seconds, looked up by nearest stamp."""
+
+    def __init__(self, horizon_s: float = 10.0) -> None:
+        self.horizon_ns = int(horizon_s * 1e9)
+        self._stamps: collections.deque[int] = collections.deque()
+        self._poses: collections.deque[Pose] = collections.deque()
+
+    def add(self, pose: Pose) -> None:
+        if self._stamps and pose.stamp_ns < self._stamps[-1]:
+            self._stamps.clear()  # time jumped back (bag loop): start over
+            self._poses.clear()
+        self._stamps.append(pose.stamp_ns)
+        self._poses.append(pose)
+        while self._stamps and self._stamps[0] < pose.stamp_ns - self.horizon_ns:
+            self._stamps.popleft()
+            self._poses.popleft()
+
+    def nearest(self, stamp_ns: int, max_age_s: float) -> Pose | None:
+        if not self._stamps:
+            return None
+        stamps = list(self._stamps)
+        i = bisect.bisect_left(stamps, stamp_ns)
+        best = min((j for j in (i - 1, i) if 0 <= j < len(stamps)),
+                   key=lambda j: abs(stamps[j] - stamp_ns))
+        if abs(stamps[best] - stamp_ns) > max_age_s * 1e9:
+            return None
+        return self._poses[best]
+
+
+class PipelineNode(Node):
+    """Base of `obstacle_detector` and `dem_builder`.
+
+    Subclasses give the config class, make their stage and implement `handle(msg, pose)`.
+    """
+
+    config_cls: type
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.cfg = declare_config(self, self.config_cls)
+        on_parameter_change(self, lambda: self.cfg, self._apply_config)
+        self.poses = PoseBuffer()
+        self.create_subscription(Odometry, "odom", lambda m: self.poses.add(pose_of_odometry(m)),
+                                 QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT))
+        self._points_sub = None
+        self._points_reliability: ReliabilityPolicy | None = None
+        self._update_points_subscription()
+        self.create_timer(1.0, self._update_points_subscription)
+        self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_timer(1.0, self._publish_diagnostics)
+        self.stats: dict[str, Any] = {"received": 0, "processed": 0, "rejected": 0,
+                                      "dropped_no_pose": 0, "points_in": 0, "points_out": 0}
+        self.reject_reasons: collections.Counter[str] = collections.Counter()
+        self.latencies: collections.deque[float] = collections.deque(maxlen=200)
+        self.recv_times: collections.deque[float] = collections.deque(maxlen=50)
+
+    # ---------------------------------------------------------------- configuration
+    def _apply_config(self, cfg: Any) -> None:
+        self.cfg = cfg
+        self.reconfigure(cfg)
+
+    def reconfigure(self, cfg: Any) -> None:
+        """Subclasses pass new parameters to their stage (takes effect on the next cloud)."""
+
+    # ---------------------------------------------------------------- input QoS
+    def _wanted_reliability(self) -> ReliabilityPolicy:
+        mode = self.cfg.input.reliability
+        if mode == "reliable":
+            return ReliabilityPolicy.RELIABLE
+        if mode == "best_effort":
+            return ReliabilityPolicy.BEST_EFFORT
+        infos = self.get_publishers_info_by_topic(self.resolve_topic_name("points"))
+        # `auto`: reliable only when every publisher is reliable; best effort matches any.
+        if infos and all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE for i in infos):
+            return ReliabilityPolicy.RELIABLE
+        return ReliabilityPolicy.BEST_EFFORT
+
+    def _update_points_subscription(self) -> None:
+        wanted = self._wanted_reliability()
+        if wanted == self._points_reliability:
+            return
+        if self._points_sub is not None:
+            self.destroy_subscription(self._points_sub)
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.cfg.input.depth,
+                         reliability=wanted)
+        self._points_sub = self.create_subscription(PointCloud2, "points", self._on_points, qos)
+        self._points_reliability = wanted
+        self.get_logger().info(f"subscribed to {self.resolve_topic_name('points')} "
+                               f"({'reliable' if wanted == ReliabilityPolicy.RELIABLE else 'best effort'})")
+
+    # ---------------------------------------------------------------- processing
+    def _on_points(self, msg: PointCloud2) -> None:
+        self.stats["received"] += 1
+        self.recv_times.append(time.monotonic())
+        stamp_ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+        pose = self.poses.nearest(stamp_ns, self.cfg.odometry_max_age)
+        if self.cfg.use_odometry and pose is None:
+            self._reject("no odometry pose near the cloud's stamp", counter="dropped_no_pose")
+            return
+        t0 = time.perf_counter()
+        try:
+            n_out = self.handle(msg, pose)
+        except LidarObstaclesError as exc:
+            self._reject(str(exc))
+            return
+        self.latencies.append(time.perf_counter() - t0)
+        self.stats["processed"] += 1
+        self.stats["points_in"] += int(msg.width) * int(msg.height)
+        self.stats["points_out"] += int(n_out)
+
+    def handle(self, msg: PointCloud2, pose: Pose | None) -> int:
+        raise NotImplementedError
+
+    def _reject(self, reason: str, counter: str = "rejected") -> None:
+        self.stats[counter] += 1
+        self.reject_reasons[reason.split(":")[0][:80]] += 1
+        self.get_logger().warning(f"dropped a cloud: {reason}",
+                                  throttle_duration_sec=WARN_THROTTLE_S)
+
+    # ---------------------------------------------------------------- diagnostics
+    def _publish_diagnostics(self) -> None:
+        lat = np.array(self.latencies) if self.latencies else np.zeros(1)
+        rate = 0.0
+        if len(self.recv_times) > 1:
+            span = self.recv_times[-1] - self.recv_times[0]
+            rate = (len(self.recv_times) - 1) / span if span > 0 else 0.0
+        values = {"rate_hz": f"{rate:.2f}", "latency_p50_ms": f"{1e3 * np.percentile(lat, 50):.1f}",
+                  "latency_p95_ms": f"{1e3 * np.percentile(lat, 95):.1f}"}
+        values.update({k: str(v) for k, v in self.stats.items()})
+        values.update({f"rejected: {k}": str(v) for k, v in self.reject_reasons.items()})
+        bad = self.stats["rejected"] + self.stats["dropped_no_pose"]
+        status = DiagnosticStatus(
+            level=DiagnosticStatus.WARN if bad else DiagnosticStatus.OK,
+            name=f"{self.get_name()}: processing", hardware_id=self.get_fully_qualified_name(),
+            message=f"{bad} clouds dropped" if bad else "ok",
+            values=[KeyValue(key=k, value=v) for k, v in values.items()])
+        self.diag_pub.publish(DiagnosticArray(header=self._diag_header(), status=[status]))
+
+    def _diag_header(self):
+        from std_msgs.msg import Header
+
+        return Header(stamp=self.get_clock().now().to_msg())
+
+
+def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
+    """Jazzy-style main: init, spin, and on SIGINT/SIGTERM destroy the node and shut down.
+
+    A bad parameter ends with one line on stderr and exit status 2.
+    """
+    rclpy.init(args=args if args is not None else sys.argv)
+    node = None
+    try:
+        node = factory()
+        rclpy.spin(node)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

@@ -1,0 +1,42 @@
+"""`obstacle_detector` node: ground, obstacles with classes, markers and the clearance grid."""
+from __future__ import annotations
+
+from nav_msgs.msg import OccupancyGrid
+from sensor_msgs.msg import PointCloud2
+from visualization_msgs.msg import MarkerArray
+
+from lidar_obstacles.config import ObstacleDetectorConfig
+from lidar_obstacles.ros.node_base import PipelineNode, output_qos, run_node
+from lidar_obstacles.ros.stages import DetectorStage, Pose
+
+
+class ObstacleDetectorNode(PipelineNode):
+    config_cls = ObstacleDetectorConfig
+
+    def __init__(self) -> None:
+        super().__init__("obstacle_detector")
+        self.stage = DetectorStage(self.cfg)
+        qos = output_qos()
+        self.pubs = {
+            "ground": self.create_publisher(PointCloud2, "ground", qos),
+            "obstacles": self.create_publisher(PointCloud2, "obstacles", qos),
+            "obstacle_markers": self.create_publisher(MarkerArray, "obstacle_markers", qos),
+            "clearance": self.create_publisher(OccupancyGrid, "clearance", qos),
+        }
+
+    def reconfigure(self, cfg: ObstacleDetectorConfig) -> None:
+        self.stage.reconfigure(cfg)
+
+    def handle(self, msg: PointCloud2, pose: Pose | None) -> int:
+        outputs, stats = self.stage.process(msg, pose)
+        for topic, out in outputs:
+            self.pubs[topic].publish(out)
+        return stats["obstacles"]
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(ObstacleDetectorNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

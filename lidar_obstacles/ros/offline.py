@@ -1,0 +1,402 @@
+"""Offline work on bags: simulate, las2bag, replay, play, export-dem.
+
+Messages are built with the same rclpy message code the nodes publish with and serialized
+with rclpy, so a bag written here is what a live node would have recorded, and `replay`
+runs the very stage objects the nodes run.
+"""
+from __future__ import annotations
+
+import importlib
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+import numpy as np
+
+from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
+from lidar_obstacles.errors import BagError, CloudFormatError, LasError
+from lidar_obstacles.io.bags import ODOMETRY, POINTCLOUD2, BagReader, BagWriter, deserialize
+from lidar_obstacles.ros import messages
+from lidar_obstacles.ros.stages import DemStage, DetectorStage, Pose, pose_of_odometry
+
+CRS_TOPIC = "/survey_crs"  # std_msgs/String: "EPSG:nnnn" or WKT, written by las2bag
+STRING = "std_msgs/msg/String"
+
+# Topics `replay` writes and their types (the nodes' outputs, root namespace).
+OUTPUT_TYPES = {
+    "/ground": POINTCLOUD2, "/obstacles": POINTCLOUD2,
+    "/obstacle_markers": "visualization_msgs/msg/MarkerArray",
+    "/clearance": "nav_msgs/msg/OccupancyGrid", "/dem": POINTCLOUD2,
+    "/dem_image": "sensor_msgs/msg/Image", "/dem_info": "nav_msgs/msg/MapMetaData",
+}
+TRANSIENT_LOCAL = {"/dem", "/dem_image", "/dem_info"}
+GPS_TO_UNIX = 315_964_800 - 18  # GPS epoch in Unix time, minus the leap seconds since then
+
+
+def _serialize(msg: Any) -> bytes:
+    from rclpy.serialization import serialize_message
+
+    return serialize_message(msg)
+
+
+def _progress(iterable: Iterable, total: int | None, desc: str, unit: str = "msg"):
+    from tqdm import tqdm
+
+    # disable=None: a bar on a terminal, silence in logs and CI.
+    return tqdm(iterable, total=total, desc=desc, unit=unit, disable=None, file=sys.stderr)
+
+
+# --------------------------------------------------------------------------- simulate
+
+
+def simulate(out: Path, *, scene: str, seed: int, duration: float, frame: str,
+             rate: float = 10.0, points_per_frame: int = 50_000,
+             storage: str = "mcap") -> dict:
+    """Write a labelled synthetic flight: `/points` and `/odom`. Returns a summary."""
+    from lidar_obstacles.core.simulate import SimSettings, simulate_flight
+
+    settings = SimSettings(scene=scene, seed=seed, duration=duration, rate=rate,
+                           points_per_frame=points_per_frame, frame=frame)
+    cloud_frame = "map" if frame == "map" else "lidar"
+    n_frames = int(round(duration * rate))
+    total = 0
+    with BagWriter(out, storage=storage) as bag:
+        bag.add_topic("/points", POINTCLOUD2)
+        bag.add_topic("/odom", ODOMETRY)
+        for f in _progress(simulate_flight(settings), n_frames, "simulate"):
+            stamp_ns = int(round(f.stamp * 1e9))
+            odom = messages.odometry(stamp_ns, "map", cloud_frame, f.position, f.orientation,
+                                     f.velocity)
+            bag.write("/odom", stamp_ns, _serialize(odom))
+            hdr = messages.header(stamp_ns, cloud_frame)
+            bag.write("/points", stamp_ns, _serialize(messages.cloud(f.points, hdr)))
+            total += len(f.points)
+    return {"bag": str(out), "messages": n_frames, "points": total, "scene": scene,
+            "frame": cloud_frame}
+
+
+# --------------------------------------------------------------------------- las2bag
+
+
+def _las_slices(points: np.ndarray, *, has_gps: bool, slice_seconds: float,
+                tile_size: float | None, strip_width: float) -> tuple[list[np.ndarray], np.ndarray]:
+    """Split a survey into messages. Returns (index arrays, stamps in ns)."""
+    gps = points["gps_time"] if has_gps else None
+    if tile_size is None and gps is not None and np.ptp(gps) > 0:
+        order = np.argsort(gps, kind="stable")
+        key = np.floor((gps[order] - gps[order[0]]) / slice_seconds).astype(np.int64)
+        cuts = np.flatnonzero(np.diff(key)) + 1
+        groups = np.split(order, cuts)
+        starts = np.array([gps[g[0]] for g in groups])
+        # Adjusted standard GPS time (large, may be negative) -> Unix; week seconds stay relative.
+        base = starts + 1e9 + GPS_TO_UNIX if np.abs(starts).max() > 7 * 86400 else starts
+        return groups, np.round(np.maximum(base, 0) * 1e9).astype(np.int64)
+    x, y = points["x"], points["y"]
+    if tile_size is not None:
+        ix = np.floor((x - x.min()) / tile_size).astype(np.int64)
+        iy = np.floor((y - y.min()) / tile_size).astype(np.int64)
+        ix = np.where(iy % 2 == 1, ix.max() - ix, ix)  # boustrophedon, as a survey is flown
+        key = iy * (ix.max() + 1) + ix
+    else:
+        along, across = (x, y) if np.ptp(x) >= np.ptp(y) else (y, x)
+        key = np.floor((along - along.min()) / strip_width).astype(np.int64)
+    order = np.argsort(key, kind="stable")
+    cuts = np.flatnonzero(np.diff(key[order])) + 1
+    groups = np.split(order, cuts)
+    stamps = (np.arange(len(groups)) * slice_seconds * 1e9).astype(np.int64)
+    return groups, stamps
+
+
+def las2bag(src: Path, out: Path, *, slice_seconds: float = 0.1, tile_size: float | None = None,
+            strip_width: float = 10.0, topic: str = "/points", frame_id: str = "map",
+            storage: str = "mcap") -> dict:
+    """Stream a LAS/LAZ survey as PointCloud2 messages.
+
+    Coordinates are written as FLOAT64 x y z in the file's own CRS (lossless; the DEM
+    exported from the bag lands on the survey's coordinates). Fields: intensity (float32),
+    return_number, number_of_returns, classification (uint8), gps_time (float64, when the
+    file has it) and point_id (uint32, the index in the file).
+    """
+    from lidar_obstacles.io.las import read_las
+
+    las = read_las(src)
+    pts = las.points
+    if slice_seconds <= 0 or (tile_size is not None and tile_size <= 0) or strip_width <= 0:
+        raise LasError("slice seconds, tile size and strip width must be positive")
+    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("intensity", "<f4"),
+              ("return_number", "u1"), ("number_of_returns", "u1"), ("classification", "u1")]
+    if las.has_gps_time:
+        fields.append(("gps_time", "<f8"))
+    fields.append(("point_id", "<u4"))
+    rec = np.empty(len(pts), dtype=fields)
+    for name, _ in fields[:-1]:
+        rec[name] = pts[name] if name in pts.dtype.names else 0
+    rec["point_id"] = np.arange(len(pts), dtype=np.uint32)
+    groups, stamps = _las_slices(pts, has_gps=las.has_gps_time, slice_seconds=slice_seconds,
+                                 tile_size=tile_size, strip_width=strip_width)
+    crs = f"EPSG:{las.epsg}" if las.epsg else las.crs_wkt
+    from std_msgs.msg import String
+
+    with BagWriter(out, storage=storage) as bag:
+        bag.add_topic(topic, POINTCLOUD2)
+        if crs:
+            bag.add_topic(CRS_TOPIC, STRING, transient_local=True)
+            bag.write(CRS_TOPIC, int(stamps[0]), _serialize(String(data=crs)))
+        for idx, stamp in _progress(zip(groups, stamps), len(groups), "las2bag"):
+            hdr = messages.header(int(stamp), frame_id)
+            bag.write(topic, int(stamp), _serialize(messages.cloud(rec[idx], hdr)))
+    return {"bag": str(out), "messages": len(groups), "points": int(len(pts)),
+            "crs": crs, "sliced_by": "gps_time" if las.has_gps_time and tile_size is None
+            and np.ptp(pts["gps_time"]) > 0 else ("tiles" if tile_size else "strips")}
+
+
+# --------------------------------------------------------------------------- replay
+
+
+@dataclass
+class ReplayStats:
+    messages: int = 0
+    rejected: int = 0
+    points: int = 0
+    bag_seconds: float = 0.0
+    wall_seconds: float = 0.0
+    latencies: list[float] = field(default_factory=list)
+    reject_reasons: dict[str, int] = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        lat = np.array(self.latencies) if self.latencies else np.zeros(1)
+        return {"messages": self.messages, "rejected": self.rejected, "points": self.points,
+                "bag_seconds": round(self.bag_seconds, 3),
+                "wall_seconds": round(self.wall_seconds, 3),
+                "real_time_factor": round(self.bag_seconds / self.wall_seconds, 2)
+                if self.wall_seconds > 0 else None,
+                "latency_p50_ms": round(1e3 * float(np.percentile(lat, 50)), 2),
+                "latency_p95_ms": round(1e3 * float(np.percentile(lat, 95)), 2),
+                "reject_reasons": self.reject_reasons}
+
+
+def load_configs(params_file: Path | None) -> tuple[ObstacleDetectorConfig, DemBuilderConfig]:
+    from lidar_obstacles.config import load_params_file
+
+    if params_file is None:
+        return ObstacleDetectorConfig(), DemBuilderConfig()
+    return (load_params_file(params_file, ObstacleDetectorConfig, "obstacle_detector"),
+            load_params_file(params_file, DemBuilderConfig, "dem_builder"))
+
+
+def _odom_topics(reader: BagReader) -> list[str]:
+    return [t.topic for t in reader.topics() if t.msgtype == ODOMETRY]
+
+
+def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage | None,
+               dem: DemStage | None, stats: ReplayStats, desc: str = "replay",
+               passthrough: bool = False) -> Iterator[tuple[str, int, Any]]:
+    """Feed every cloud of a bag through the stages, in bag order.
+
+    Yields (topic, stamp_ns, message-or-raw-bytes) to write. Malformed clouds are counted
+    and skipped, like the node drops them.
+    """
+    cloud_topic = reader.pointcloud_topic(topic)
+    odom = _odom_topics(reader)
+    use_odom = any(s is not None and s.cfg.use_odometry for s in (detector, dem))
+    others = [t.topic for t in reader.topics() if t.topic not in (cloud_topic, *odom)]
+    wanted = [cloud_topic, *odom] + (others if passthrough else [])
+    from lidar_obstacles.core.pipeline import ObstacleDetector  # noqa: F401 (fail early)
+    from lidar_obstacles.ros.node_base import PoseBuffer
+
+    poses = PoseBuffer()
+    max_age = (detector or dem).cfg.odometry_max_age  # type: ignore[union-attr]
+    publish_period_ns = int(1e9 / dem.cfg.dem.publish_rate) if dem is not None else 0
+    next_dem_ns: int | None = None
+    first_ns = last_ns = None
+    n_clouds = reader.count([cloud_topic])
+    bar = _progress(None, n_clouds, desc)
+    t_start = time.perf_counter()
+    try:
+        for record in reader.records(wanted):
+            if record.topic in odom:
+                poses.add(pose_of_odometry(deserialize(record)))
+                if passthrough:
+                    yield record.topic, record.stamp_ns, record
+                continue
+            if record.topic != cloud_topic:
+                yield record.topic, record.stamp_ns, record
+                continue
+            bar.update(1)
+            msg = deserialize(record)
+            stamp_ns = messages.stamp_ns_of(msg.header)
+            first_ns = stamp_ns if first_ns is None else first_ns
+            last_ns = stamp_ns
+            pose = poses.nearest(stamp_ns, max_age)
+            if use_odom and pose is None:
+                stats.rejected += 1
+                key = "no odometry pose near the cloud's stamp"
+                stats.reject_reasons[key] = stats.reject_reasons.get(key, 0) + 1
+                continue
+            t0 = time.perf_counter()
+            try:
+                if detector is not None:
+                    outputs, _ = detector.process(msg, pose)
+                    for name, out in outputs:
+                        yield "/" + name, record.stamp_ns, out
+                if dem is not None:
+                    dem.process(msg, pose)
+            except CloudFormatError as exc:
+                stats.rejected += 1
+                key = str(exc).split(":")[0][:80]
+                stats.reject_reasons[key] = stats.reject_reasons.get(key, 0) + 1
+                continue
+            stats.latencies.append(time.perf_counter() - t0)
+            stats.messages += 1
+            stats.points += int(msg.width) * int(msg.height)
+            if dem is not None:
+                if next_dem_ns is None:
+                    next_dem_ns = stamp_ns + publish_period_ns
+                elif stamp_ns >= next_dem_ns:
+                    next_dem_ns = stamp_ns + publish_period_ns
+                    for name, out in dem.dem_outputs(stamp_ns):
+                        yield "/" + name, record.stamp_ns, out
+        if dem is not None and last_ns is not None:
+            for name, out in dem.dem_outputs(last_ns):
+                yield "/" + name, last_ns, out
+    finally:
+        bar.close()
+        stats.wall_seconds = time.perf_counter() - t_start
+        if first_ns is not None and last_ns is not None:
+            # A bag of n messages at rate r covers n periods, not n-1.
+            period = (last_ns - first_ns) / max(stats.messages - 1, 1) if stats.messages > 1 else 1e8
+            stats.bag_seconds = (last_ns - first_ns + period) * 1e-9
+
+
+def replay(src: Path, out: Path, *, topic: str | None = None, params_file: Path | None = None,
+           storage: str = "mcap", with_dem: bool = True) -> dict:
+    """Run both nodes' stages over a bag and write what they would publish."""
+    det_cfg, dem_cfg = load_configs(params_file)
+    stats = ReplayStats()
+    detector = DetectorStage(det_cfg)
+    dem = DemStage(dem_cfg) if with_dem else None
+    with BagReader(src) as reader, BagWriter(out, storage=storage) as bag:
+        for name, msgtype in OUTPUT_TYPES.items():
+            if with_dem or name not in TRANSIENT_LOCAL:
+                bag.add_topic(name, msgtype, transient_local=name in TRANSIENT_LOCAL)
+        for t in reader.topics():
+            if t.msgtype != POINTCLOUD2 and t.topic not in OUTPUT_TYPES:
+                bag.add_topic(t.topic, t.msgtype, transient_local=t.topic == CRS_TOPIC)
+        for name, stamp_ns, out_msg in run_stages(reader, topic=topic, detector=detector,
+                                                  dem=dem, stats=stats, passthrough=True):
+            raw = _passthrough_bytes(out_msg) if hasattr(out_msg, "raw") else _serialize(out_msg)
+            bag.write(name, stamp_ns, raw)
+        if stats.messages == 0:
+            raise BagError(f"no cloud of {src} could be processed "
+                           f"({stats.rejected} rejected: {stats.reject_reasons})")
+    return {"bag": str(out), **stats.summary()}
+
+
+def _passthrough_bytes(record) -> bytes:
+    """CDR bytes of a passed-through record (ROS 1 records are converted)."""
+    if not record.ros1:
+        return record.raw
+    from lidar_obstacles.io.bags import typestore
+
+    return bytes(typestore().serialize_cdr(deserialize(record), record.msgtype))
+
+
+# --------------------------------------------------------------------------- export-dem
+
+
+def read_crs(reader: BagReader) -> str:
+    """The CRS recorded by las2bag in the bag, or ""."""
+    if not any(t.topic == CRS_TOPIC for t in reader.topics()):
+        return ""
+    for record in reader.records([CRS_TOPIC]):
+        return str(deserialize(record).data)
+    return ""
+
+
+def export_dem(src: Path, out: Path, *, topic: str | None = None,
+               params_file: Path | None = None, crs: str | None = None) -> dict:
+    """Build the DEM of a whole bag offline; write a GeoTIFF and a hillshade PNG beside it."""
+    from lidar_obstacles.config import replace
+    from lidar_obstacles.io.geotiff import write_geotiff, write_hillshade_png
+
+    _, dem_cfg = load_configs(params_file)
+    if params_file is None:
+        dem_cfg = replace(dem_cfg, {"dem.extent": 0.0})  # offline: the whole survey
+    stats = ReplayStats()
+    stage = DemStage(dem_cfg)
+    with BagReader(src) as reader:
+        bag_crs = read_crs(reader)
+        for _ in run_stages(reader, topic=topic, detector=None, dem=stage, stats=stats,
+                            desc="export-dem"):
+            pass
+    grid = stage.grid()
+    if grid is None or not np.isfinite(grid.elevation).any():
+        raise BagError(f"no ground found in {src}: cannot build a DEM")
+    crs_text = crs or dem_cfg.export.crs or bag_crs
+    write_geotiff(out, grid, crs=crs_text)
+    png = out.with_name(out.stem + "_hillshade.png")
+    write_hillshade_png(png, grid)
+    return {"geotiff": str(out), "hillshade": str(png), "crs": crs_text,
+            "rows": int(grid.elevation.shape[0]), "cols": int(grid.elevation.shape[1]),
+            "resolution": float(grid.resolution), **stats.summary()}
+
+
+# --------------------------------------------------------------------------- play
+
+
+def _msg_class(msgtype: str):
+    pkg, _, name = msgtype.split("/")
+    return getattr(importlib.import_module(f"{pkg}.msg"), name)
+
+
+def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] | None = None,
+         start_delay: float = 1.0) -> dict:
+    """Publish a bag into the live ROS graph at its recorded rate (scaled by `rate`)."""
+    import rclpy
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    if rate <= 0:
+        raise BagError("--rate must be positive")
+    with BagReader(src) as reader:
+        infos = [t for t in reader.topics() if topics is None or t.topic in topics]
+        if not infos:
+            raise BagError(f"bag {src} has none of the requested topics")
+        rclpy.init(args=None)
+        node = rclpy.create_node("lidar_obstacles_player")
+        pubs = {}
+        for t in infos:
+            qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL
+                             if t.topic == CRS_TOPIC else DurabilityPolicy.VOLATILE)
+            # Bag topics are absolute names; published relative so `-r __ns:=` style use works.
+            pubs[t.topic] = node.create_publisher(_msg_class(t.msgtype), t.topic.lstrip("/"), qos)
+        sent = 0
+        try:
+            time.sleep(start_delay)  # let discovery match subscribers before the first message
+            while True:
+                t0_wall = time.monotonic()
+                t0_bag = None
+                for record in reader.records([t.topic for t in infos]):
+                    t0_bag = record.stamp_ns if t0_bag is None else t0_bag
+                    due = t0_wall + (record.stamp_ns - t0_bag) * 1e-9 / rate
+                    delay = due - time.monotonic()
+                    if delay > 0:
+                        time.sleep(delay)
+                    raw = _passthrough_bytes(record)
+                    pubs[record.topic].publish(raw)
+                    sent += 1
+                if not loop:
+                    break
+        except KeyboardInterrupt:
+            pass
+        finally:
+            node.destroy_node()
+            rclpy.try_shutdown()
+    return {"published": sent}
+
+
+def write_json(data: dict) -> None:
+    print(json.dumps(data, indent=2, default=str))

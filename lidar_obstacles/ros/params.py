@@ -1,0 +1,67 @@
+"""Mirror the config schema into ROS 2 parameters: dotted names, descriptors with ranges,
+validated runtime updates."""
+from __future__ import annotations
+
+from typing import Any, Callable
+
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    ParameterType,
+    SetParametersResult,
+)
+from rclpy.node import Node
+
+from lidar_obstacles.config import ParamInfo, params_of, replace
+from lidar_obstacles.errors import ConfigError
+
+_TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
+          float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
+
+
+def descriptor(info: ParamInfo) -> ParameterDescriptor:
+    """The ParameterDescriptor of one schema parameter (description, unit, range, choices)."""
+    spec = info.spec
+    text = spec.description + (f" [{spec.unit}]" if spec.unit else "")
+    d = ParameterDescriptor(name=info.name, type=_TYPES[info.type], description=text,
+                            read_only=spec.read_only)
+    if spec.choices:
+        d.additional_constraints = "one of: " + ", ".join(spec.choices)
+    if info.type is float and spec.min is not None and spec.max is not None:
+        d.floating_point_range = [FloatingPointRange(
+            from_value=float(spec.min), to_value=float(spec.max), step=0.0)]
+    elif info.type is int and spec.min is not None and spec.max is not None:
+        d.integer_range = [IntegerRange(from_value=int(spec.min), to_value=int(spec.max), step=1)]
+    return d
+
+
+def declare_config(node: Node, cls: type) -> Any:
+    """Declare every parameter of `cls` on `node` and return the validated config.
+
+    Raises ConfigError when an override (``-p``, ``--params-file``) is invalid.
+    """
+    values = {}
+    for info in params_of(cls):
+        try:
+            param = node.declare_parameter(info.name, info.default, descriptor(info))
+        except Exception as exc:  # rclpy raises its own types for type and range errors
+            raise ConfigError(f"parameter '{info.name}': {exc}".splitlines()[0]) from None
+        values[info.name] = param.value
+    return replace(cls(), values)
+
+
+def on_parameter_change(node: Node, get_cfg: Callable[[], Any],
+                        set_cfg: Callable[[Any], None]) -> None:
+    """Validate runtime updates against the schema; accepted ones take effect on the next
+    message, rejected ones leave everything as it was and say why."""
+
+    def callback(params: list) -> SetParametersResult:
+        try:
+            new_cfg = replace(get_cfg(), {p.name: p.value for p in params})
+        except ConfigError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        set_cfg(new_cfg)
+        return SetParametersResult(successful=True)
+
+    node.add_on_set_parameters_callback(callback)

@@ -1,0 +1,168 @@
+"""Message-level stages shared by the live nodes and offline `replay`.
+
+A stage takes one PointCloud2 (rclpy or rosbags message) and the vehicle pose, runs the
+core pipeline object and returns the messages to publish as ``(topic, message)`` pairs.
+The node publishes them; `replay` serializes them into a bag. Same objects, same results.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
+from lidar_obstacles.core.pipeline import DemPipeline, ObstacleDetector
+from lidar_obstacles.errors import CloudFormatError
+from lidar_obstacles.io.pointcloud2 import append_fields, read_points
+from lidar_obstacles.ros import messages
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A rigid pose: position (3,) metres and quaternion (4,) x y z w, in `frame_id`."""
+
+    stamp_ns: int
+    position: np.ndarray
+    orientation: np.ndarray
+    frame_id: str
+
+    def rotation(self) -> np.ndarray:
+        x, y, z, w = np.asarray(self.orientation, float) / np.linalg.norm(self.orientation)
+        return np.array([
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def pose_of_odometry(msg) -> Pose:
+    """Pose of a nav_msgs/Odometry (rclpy or rosbags)."""
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    return Pose(messages.stamp_ns_of(msg.header), np.array([p.x, p.y, p.z], float),
+                np.array([q.x, q.y, q.z, q.w], float), msg.header.frame_id)
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """A decoded cloud: its points (1-D structured), float64 xyz in the output frame."""
+
+    points: np.ndarray
+    xyz: np.ndarray
+    stamp_ns: int
+    frame_id: str
+
+
+def prepare(msg, *, keep_non_finite: bool, max_points: int, pose: Pose | None,
+            transform: bool) -> Prepared:
+    """Decode a PointCloud2 and, when `transform`, move it into the pose's frame.
+
+    Raises CloudFormatError for malformed or oversize clouds. Non-finite points are dropped
+    unless `keep_non_finite`; kept ones stay in the output but are never ground.
+    """
+    n_in = int(msg.width) * int(msg.height)
+    if n_in > max_points:
+        raise CloudFormatError(f"cloud has {n_in} points, more than input.max_points="
+                               f"{max_points}")
+    points = read_points(msg, keep_non_finite=keep_non_finite).reshape(-1)
+    xyz = np.column_stack([points["x"], points["y"], points["z"]]).astype(np.float64)
+    frame = msg.header.frame_id
+    if transform and pose is not None:
+        xyz = xyz @ pose.rotation().T + pose.position
+        points = points.copy()
+        for i, axis in enumerate("xyz"):
+            points[axis] = xyz[:, i]
+        frame = pose.frame_id
+    return Prepared(points, xyz, messages.stamp_ns_of(msg.header), frame)
+
+
+def _attr(points: np.ndarray, name: str) -> np.ndarray | None:
+    names = points.dtype.names or ()
+    return np.asarray(points[name]) if name in names else None
+
+
+class DetectorStage:
+    """`obstacle_detector`'s work on one message."""
+
+    def __init__(self, cfg: ObstacleDetectorConfig) -> None:
+        self.cfg = cfg
+        self.pipeline = ObstacleDetector(cfg)
+
+    def reconfigure(self, cfg: ObstacleDetectorConfig) -> None:
+        self.cfg = cfg
+        self.pipeline.reconfigure(cfg)
+
+    def process(self, msg, pose: Pose | None = None) -> tuple[list[tuple[str, object]], dict]:
+        """Returns the messages to publish and a stats dict (points, timings)."""
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        prep = prepare(msg, keep_non_finite=cfg.input.keep_non_finite,
+                       max_points=cfg.input.max_points, pose=pose,
+                       transform=cfg.use_odometry)
+        finite = np.isfinite(prep.xyz).all(axis=1)
+        kept = prep.points if finite.all() else prep.points[finite]
+        result = self.pipeline.process(
+            prep.xyz[finite], stamp=prep.stamp_ns * 1e-9,
+            vehicle_xyz=pose.position if pose is not None else None,
+            intensity=_attr(kept, "intensity"), return_number=_attr(kept, "return_number"),
+            number_of_returns=_attr(kept, "number_of_returns"))
+        n = len(prep.points)
+        classes = np.full(n, 7, np.uint8)  # non-finite points: noise, never ground
+        hag = np.full(n, np.nan, np.float32)
+        ground = np.zeros(n, bool)
+        classes[finite], hag[finite], ground[finite] = (
+            result.classes, result.height_above_ground, result.ground)
+        out_points = append_fields(prep.points, {"class": classes, "height_above_ground": hag})
+        hdr = messages.header(prep.stamp_ns, prep.frame_id)
+        out: list[tuple[str, object]] = [
+            ("ground", messages.cloud(out_points[ground], hdr)),
+            ("obstacles", messages.cloud(out_points[~ground], hdr)),
+            ("obstacle_markers", messages.markers(result.objects, hdr)),
+        ]
+        if result.clearance is not None:
+            c = result.clearance
+            out.append(("clearance", messages.occupancy(c.cells, c.origin, c.resolution, hdr)))
+        stats = {"points_in": n, "ground": int(ground.sum()), "obstacles": int((~ground).sum()),
+                 "objects": len(result.objects), "timings": dict(result.timings),
+                 "seconds": time.perf_counter() - t0, "classes": classes}
+        return out, stats
+
+
+class DemStage:
+    """`dem_builder`'s work: feed messages into the rolling DEM, publish it on demand."""
+
+    def __init__(self, cfg: DemBuilderConfig) -> None:
+        self.cfg = cfg
+        self.pipeline = DemPipeline(cfg)
+        self.frame_id = "map"
+        self.last_stamp_ns = 0
+
+    def reconfigure(self, cfg: DemBuilderConfig) -> None:
+        self.cfg = cfg
+        self.pipeline.reconfigure(cfg)
+
+    def process(self, msg, pose: Pose | None = None) -> dict:
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        prep = prepare(msg, keep_non_finite=False, max_points=cfg.input.max_points,
+                       pose=pose, transform=cfg.use_odometry)
+        self.frame_id = prep.frame_id
+        self.last_stamp_ns = prep.stamp_ns
+        timings = self.pipeline.process(
+            prep.xyz, stamp=prep.stamp_ns * 1e-9,
+            vehicle_xyz=pose.position if pose is not None else None,
+            intensity=_attr(prep.points, "intensity"))
+        return {"points_in": len(prep.points), "timings": timings,
+                "seconds": time.perf_counter() - t0}
+
+    def grid(self):
+        return self.pipeline.dem.snapshot()
+
+    def dem_outputs(self, stamp_ns: int | None = None) -> list[tuple[str, object]]:
+        """`dem`, `dem_image`, `dem_info` of the current grid (empty list before any data)."""
+        grid = self.grid()
+        if grid is None or grid.elevation.size == 0:
+            return []
+        hdr = messages.header(self.last_stamp_ns if stamp_ns is None else stamp_ns,
+                              self.frame_id)
+        dem_cloud, image, info = messages.dem_messages(grid, hdr)
+        return [("dem", dem_cloud), ("dem_image", image), ("dem_info", info)]
