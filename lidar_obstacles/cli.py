@@ -67,7 +67,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("src", type=Path, metavar="IN_BAG")
     s.add_argument("--rate", type=_positive, default=1.0, help="speed factor")
     s.add_argument("--loop", action="store_true")
-    s.add_argument("--topics", nargs="+", default=None)
+    s.add_argument("--topics", nargs="+", default=None, help="only these bag topics")
+    s.add_argument("--namespace", default="", help="publish under this namespace, e.g. /uav1")
 
     s = sub.add_parser("export-dem", help="build the DEM of a bag and write a GeoTIFF")
     s.add_argument("src", type=Path, metavar="IN_BAG")
@@ -94,7 +95,8 @@ def run(args: argparse.Namespace) -> dict:
                               params_file=args.params_file, storage=args.storage,
                               with_dem=not args.no_dem)
     if args.command == "play":
-        return offline.play(args.src, rate=args.rate, loop=args.loop, topics=args.topics)
+        return offline.play(args.src, rate=args.rate, loop=args.loop, topics=args.topics,
+                           namespace=args.namespace)
     if args.command == "export-dem":
         return offline.export_dem(args.src, args.out, topic=args.topic,
                                   params_file=args.params_file, crs=args.crs)

@@ -38,9 +38,9 @@ class ParamSpec:
 
     def range_text(self) -> str:
         if self.choices:
-            return "one of " + ", ".join(self.choices)
+            return "one of: " + ", ".join(self.choices)
         if self.min is not None and self.max is not None:
-            return f"[{self.min:g}, {self.max:g}]"
+            return f"range [{self.min:g}, {self.max:g}]"
         return ""
 
 
@@ -211,16 +211,19 @@ class KmeansConfig:
     seed: int = param(0, "random seed", min=0, max=2**31 - 1)
     ground_window: float = param(
         10.0, "clusters are ranked by their points' median height above the lowest point "
-        "within about this distance; the lowest cluster is ground", "m", min=0.5, max=500.0)
+        "within about this distance", "m", min=0.5, max=500.0)
     ground_max_height: float = param(
-        1.0, "`two_stage`: a first-stage cluster contributes its lowest intensity class "
-        "only if that class lies at most this far above the local minimum", "m",
-        min=0.0, max=100.0)
+        1.0, "clusters whose median height above that local minimum is at most this are "
+        "ground (at least the lowest cluster is)", "m", min=0.0, max=100.0)
     tin_threshold: float = param(
         0.5, "TIN outlier check: a ground candidate further than this from the TIN of its "
         "neighbours (and the worst among them) is dropped", "m", min=0.01, max=50.0)
     tin_rounds: int = param(5, "TIN outlier checks are repeated at most this often",
                             min=0, max=100)
+    sample_size: int = param(
+        20000, "clustering on several features (XYZ, geometric) sweeps k on at most this "
+        "many random points; every point then joins its nearest centre", "points",
+        min=100, max=10_000_000)
 
 
 @dataclass(frozen=True)

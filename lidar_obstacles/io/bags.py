@@ -1,8 +1,8 @@
 """Bag containers through `rosbags`: read rosbag2 (mcap, sqlite3) and ROS 1 bags, write rosbag2.
 
 Only the container lives here; messages travel as serialized bytes. Reading hands out raw
-records, and :func:`deserialize` turns one into a rosbags message (pure Python, no ROS
-install needed). Writing takes CDR bytes, so the ROS layer can serialize with rclpy and
+records, and :meth:`BagReader.deserialize` turns one into a rosbags message (pure Python,
+no ROS install needed). Writing takes CDR bytes, so the ROS layer can serialize with rclpy and
 the bag holds exactly what a live node would publish.
 
 Outputs are written to a temporary name beside the target and renamed only when complete,
@@ -119,6 +119,16 @@ class BagReader:
             raise BagError(f"bag {self.path} has no PointCloud2 messages")
         return max(clouds, key=lambda t: t.count).topic
 
+    def deserialize(self, record: BagRecord) -> Any:
+        """A rosbags message object of a record, with the bag's own type definitions (ROS 1
+        bags carry theirs). BagError when the bytes do not decode."""
+        try:
+            return self._reader.deserialize(record.raw, record.msgtype)
+        except Exception as exc:
+            text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise BagError(f"cannot decode a {record.msgtype} message on {record.topic}: "
+                           f"{text}") from None
+
     def count(self, topics: Sequence[str]) -> int:
         return sum(t.count for t in self.topics() if t.topic in topics)
 
@@ -134,18 +144,6 @@ class BagReader:
         except Exception as exc:
             text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             raise BagError(f"bag {self.path} is truncated or corrupt: {text}") from None
-
-
-def deserialize(record: BagRecord) -> Any:
-    """A rosbags message object from a record (CDR or ROS 1). BagError when it fails."""
-    store = typestore()
-    try:
-        if record.ros1:
-            return store.deserialize_ros1(record.raw, record.msgtype)
-        return store.deserialize_cdr(record.raw, record.msgtype)
-    except Exception as exc:
-        raise BagError(f"cannot decode a {record.msgtype} message on {record.topic}: "
-                       f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
 
 
 class BagWriter:

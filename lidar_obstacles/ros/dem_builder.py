@@ -35,7 +35,7 @@ class DemBuilderNode(PipelineNode):
             self.destroy_timer(self._timer)
             self._timer = self.create_timer(1.0 / cfg.dem.publish_rate, self._publish_dem)
 
-    def handle(self, msg: PointCloud2, pose: Pose | None) -> int:
+    def process_cloud(self, msg: PointCloud2, pose: Pose | None) -> int:
         stats = self.stage.process(msg, pose)
         self._dirty = True
         return stats["points_in"]

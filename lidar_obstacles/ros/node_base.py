@@ -71,7 +71,7 @@ class PoseBuffer:
 class PipelineNode(Node):
     """Base of `obstacle_detector` and `dem_builder`.
 
-    Subclasses give the config class, make their stage and implement `handle(msg, pose)`.
+    Subclasses give the config class, make their stage and implement `process_cloud(msg, pose)`.
     """
 
     config_cls: type
@@ -140,7 +140,7 @@ class PipelineNode(Node):
             return
         t0 = time.perf_counter()
         try:
-            n_out = self.handle(msg, pose)
+            n_out = self.process_cloud(msg, pose)
         except LidarObstaclesError as exc:
             self._reject(str(exc))
             return
@@ -149,7 +149,7 @@ class PipelineNode(Node):
         self.stats["points_in"] += int(msg.width) * int(msg.height)
         self.stats["points_out"] += int(n_out)
 
-    def handle(self, msg: PointCloud2, pose: Pose | None) -> int:
+    def process_cloud(self, msg: PointCloud2, pose: Pose | None) -> int:
         raise NotImplementedError
 
     def _reject(self, reason: str, counter: str = "rejected") -> None:

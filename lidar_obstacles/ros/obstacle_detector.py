@@ -27,7 +27,7 @@ class ObstacleDetectorNode(PipelineNode):
     def reconfigure(self, cfg: ObstacleDetectorConfig) -> None:
         self.stage.reconfigure(cfg)
 
-    def handle(self, msg: PointCloud2, pose: Pose | None) -> int:
+    def process_cloud(self, msg: PointCloud2, pose: Pose | None) -> int:
         outputs, stats = self.stage.process(msg, pose)
         for topic, out in outputs:
             self.pubs[topic].publish(out)

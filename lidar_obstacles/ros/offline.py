@@ -18,7 +18,7 @@ import numpy as np
 
 from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
 from lidar_obstacles.errors import BagError, CloudFormatError, LasError
-from lidar_obstacles.io.bags import ODOMETRY, POINTCLOUD2, BagReader, BagWriter, deserialize
+from lidar_obstacles.io.bags import ODOMETRY, POINTCLOUD2, BagReader, BagWriter
 from lidar_obstacles.ros import messages
 from lidar_obstacles.ros.stages import DemStage, DetectorStage, Pose, pose_of_odometry
 
@@ -218,15 +218,14 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
     try:
         for record in reader.records(wanted):
             if record.topic in odom:
-                poses.add(pose_of_odometry(deserialize(record)))
-                if passthrough:
-                    yield record.topic, record.stamp_ns, record
-                continue
+                poses.add(pose_of_odometry(reader.deserialize(record)))
             if record.topic != cloud_topic:
-                yield record.topic, record.stamp_ns, record
+                raw = cdr_of_record(reader, record)
+                if passthrough and raw is not None:
+                    yield record.topic, record.stamp_ns, raw
                 continue
             bar.update(1)
-            msg = deserialize(record)
+            msg = reader.deserialize(record)
             stamp_ns = messages.stamp_ns_of(msg.header)
             first_ns = stamp_ns if first_ns is None else first_ns
             last_ns = stamp_ns
@@ -287,21 +286,31 @@ def replay(src: Path, out: Path, *, topic: str | None = None, params_file: Path 
                 bag.add_topic(t.topic, t.msgtype, transient_local=t.topic == CRS_TOPIC)
         for name, stamp_ns, out_msg in run_stages(reader, topic=topic, detector=detector,
                                                   dem=dem, stats=stats, passthrough=True):
-            raw = _passthrough_bytes(out_msg) if hasattr(out_msg, "raw") else _serialize(out_msg)
-            bag.write(name, stamp_ns, raw)
+            bag.write(name, stamp_ns,
+                      out_msg if isinstance(out_msg, bytes) else _serialize(out_msg))
         if stats.messages == 0:
             raise BagError(f"no cloud of {src} could be processed "
                            f"({stats.rejected} rejected: {stats.reject_reasons})")
     return {"bag": str(out), **stats.summary()}
 
 
-def _passthrough_bytes(record) -> bytes:
-    """CDR bytes of a passed-through record (ROS 1 records are converted)."""
+def cdr_of_record(reader: BagReader, record) -> bytes | None:
+    """CDR bytes of a record to pass on. ROS 2 records go as they are; ROS 1 clouds and
+    odometry are rebuilt as ROS 2 messages; other ROS 1 types are not carried (None)."""
     if not record.ros1:
         return record.raw
-    from lidar_obstacles.io.bags import typestore
+    from lidar_obstacles.io.pointcloud2 import read_points
 
-    return bytes(typestore().serialize_cdr(deserialize(record), record.msgtype))
+    msg = reader.deserialize(record)
+    stamp_ns = messages.stamp_ns_of(msg.header)
+    if record.msgtype == POINTCLOUD2:
+        return _serialize(messages.cloud(read_points(msg, keep_non_finite=True),
+                                         messages.header(stamp_ns, msg.header.frame_id)))
+    if record.msgtype == ODOMETRY:
+        pose = pose_of_odometry(msg)
+        return _serialize(messages.odometry(stamp_ns, pose.frame_id, msg.child_frame_id,
+                                            pose.position, pose.orientation))
+    return None
 
 
 # --------------------------------------------------------------------------- export-dem
@@ -312,7 +321,7 @@ def read_crs(reader: BagReader) -> str:
     if not any(t.topic == CRS_TOPIC for t in reader.topics()):
         return ""
     for record in reader.records([CRS_TOPIC]):
-        return str(deserialize(record).data)
+        return str(reader.deserialize(record).data)
     return ""
 
 
@@ -353,8 +362,11 @@ def _msg_class(msgtype: str):
 
 
 def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] | None = None,
-         start_delay: float = 1.0) -> dict:
-    """Publish a bag into the live ROS graph at its recorded rate (scaled by `rate`)."""
+         namespace: str = "", start_delay: float = 1.0) -> dict:
+    """Publish a bag into the live ROS graph at its recorded rate (scaled by `rate`).
+
+    Bag topics are published relative to `namespace` (``/points`` -> ``/uav1/points``).
+    """
     import rclpy
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
@@ -365,7 +377,7 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
         if not infos:
             raise BagError(f"bag {src} has none of the requested topics")
         rclpy.init(args=None)
-        node = rclpy.create_node("lidar_obstacles_player")
+        node = rclpy.create_node("lidar_obstacles_player", namespace=namespace or None)
         pubs = {}
         for t in infos:
             qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
@@ -385,9 +397,10 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
                     delay = due - time.monotonic()
                     if delay > 0:
                         time.sleep(delay)
-                    raw = _passthrough_bytes(record)
-                    pubs[record.topic].publish(raw)
-                    sent += 1
+                    raw = cdr_of_record(reader, record)
+                    if raw is not None:
+                        pubs[record.topic].publish(raw)
+                        sent += 1
                 if not loop:
                     break
         except KeyboardInterrupt:

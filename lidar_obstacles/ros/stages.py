@@ -111,7 +111,8 @@ class DetectorStage:
         ground = np.zeros(n, bool)
         classes[finite], hag[finite], ground[finite] = (
             result.classes, result.height_above_ground, result.ground)
-        out_points = append_fields(prep.points, {"class": classes, "height_above_ground": hag})
+        out_points = append_fields(prep.points, {"class": classes, "height_above_ground": hag},
+                                   overwrite=True)
         hdr = messages.header(prep.stamp_ns, prep.frame_id)
         out: list[tuple[str, object]] = [
             ("ground", messages.cloud(out_points[ground], hdr)),

@@ -1,0 +1,427 @@
+"""Scattered-data interpolators for the DEM and the paper's thinning protocol.
+
+One entry, :func:`interpolate`, with five methods:
+
+- ``tin``: Delaunay triangulation, linear inside each triangle, NaN outside the hull.
+- ``idw``: inverse distance weighting of the nearest samples.
+- ``kriging``: ordinary kriging with a variogram fitted to the samples, on LOCAL
+  neighbourhoods. Written in the dual form, estimate(x) = sum_i a_i gamma(|x - x_i|) + b
+  with [Gamma 1; 1' 0][a; b] = [z; 0], which is algebraically the same as solving for the
+  kriging weights but needs one solve per neighbourhood instead of one per query; queries
+  with the same k nearest samples (common on a grid denser than the data) share it. The
+  systems are solved stacked, (U, k+1, k+1), with one np.linalg.solve call per chunk.
+- ``rbf``: local radial basis functions with a linear polynomial, the same dual machinery.
+- ``rbfnn``: the paper's RBF network (like MATLAB newrb): Gaussian units added one at a
+  time at the worst-fitted sample until the training MSE reaches the goal.
+
+Degenerate input never raises from Qhull or LAPACK: coincident samples are merged (mean z),
+fewer than 3 samples or collinear samples give NaN for ``tin``; the other methods still
+answer (a constant or a line's extension), see :func:`degeneracy` for the reason text.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+from scipy.linalg import solve_triangular
+from scipy.optimize import least_squares
+from scipy.spatial import Delaunay, QhullError, cKDTree
+
+from lidar_obstacles.config import KrigingConfig, RbfConfig, RbfnnConfig
+from lidar_obstacles.errors import CloudFormatError
+
+METHODS = ("tin", "idw", "kriging", "rbf", "rbfnn")
+_CHUNK = 4096  # local systems solved per stacked call: bounds memory to a few MB
+
+
+# --------------------------------------------------------------------------- input
+
+
+def _check(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray) -> tuple[np.ndarray, ...]:
+    xy = np.asarray(xy, dtype=np.float64)
+    z = np.asarray(z, dtype=np.float64)
+    q = np.asarray(query_xy, dtype=np.float64)
+    if xy.ndim != 2 or xy.shape[1] != 2 or z.shape != (len(xy),):
+        raise CloudFormatError(f"interpolate: expected xy (N, 2) and z (N,), got {xy.shape} "
+                               f"and {z.shape}")
+    if q.ndim != 2 or q.shape[1] != 2:
+        raise CloudFormatError(f"interpolate: expected query_xy (M, 2), got {q.shape}")
+    return xy, z, q
+
+
+def merge_coincident(xy: np.ndarray, z: np.ndarray, *, quantum: float = 1e-6,
+                     extra: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+    """Drop non-finite samples and merge samples closer than ``quantum`` (m) in XY.
+
+    Returns (xy (U, 2), z (U,)) — plus extra (U,) when given — with means per merged
+    group. Coincident samples make every interpolation system singular.
+    """
+    ok = np.all(np.isfinite(xy), axis=1) & np.isfinite(z)
+    if extra is not None:
+        ok &= np.isfinite(extra)
+    xy, z = xy[ok], z[ok]
+    keys = np.round(xy / quantum).astype(np.int64)
+    _, first, inverse, counts = np.unique(keys, axis=0, return_index=True,
+                                          return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    if len(first) == len(xy):
+        return (xy, z) if extra is None else (xy, z, extra[ok])
+    mean = [np.bincount(inverse, weights=v) / counts for v in (xy[:, 0], xy[:, 1], z)]
+    out = (np.column_stack(mean[:2]), mean[2])
+    if extra is not None:
+        out += (np.bincount(inverse, weights=extra[ok]) / counts,)
+    return out
+
+
+def degeneracy(xy: np.ndarray) -> str:
+    """Why samples (N, 2) cannot span a surface ("" when they can): too few or collinear."""
+    xy = np.asarray(xy, dtype=np.float64)
+    if len(xy) < 3:
+        return f"only {len(xy)} distinct sample(s); a surface needs 3"
+    centred = xy - xy.mean(axis=0)
+    s = np.linalg.svd(centred, compute_uv=False)
+    if s[0] == 0.0 or s[1] <= 1e-9 * s[0]:
+        return "all samples are collinear (or coincident) in XY"
+    return ""
+
+
+# --------------------------------------------------------------------------- tin / idw
+
+
+def tin(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray) -> np.ndarray:
+    """Linear interpolation on the Delaunay TIN; NaN outside the hull or when degenerate."""
+    out = np.full(len(query_xy), np.nan)
+    if degeneracy(xy) or len(query_xy) == 0:
+        return out
+    try:
+        tri = Delaunay(xy)
+    except QhullError:  # nearly collinear sets that passed the SVD test
+        return out
+    simplex = tri.find_simplex(query_xy)
+    inside = simplex >= 0
+    s = simplex[inside]
+    trans = tri.transform[s]
+    bary2 = np.einsum("mij,mj->mi", trans[:, :2], query_xy[inside] - trans[:, 2])
+    bary = np.column_stack([bary2, 1.0 - bary2.sum(axis=1)])
+    out[inside] = np.einsum("mi,mi->m", bary, z[tri.simplices[s]])
+    return out
+
+
+def idw(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray, *, neighbours: int = 8,
+        power: float = 2.0) -> np.ndarray:
+    """Inverse distance weighting of the ``neighbours`` nearest samples (exact at samples)."""
+    if len(xy) == 0:
+        return np.full(len(query_xy), np.nan)
+    k = min(neighbours, len(xy))
+    d, idx = cKDTree(xy).query(query_xy, k=k, workers=-1)
+    d, idx = d.reshape(len(query_xy), k), idx.reshape(len(query_xy), k)
+    w = 1.0 / np.maximum(d, 1e-12) ** power
+    exact = d[:, 0] <= 1e-12
+    out = np.einsum("mk,mk->m", w, z[idx]) / w.sum(axis=1)
+    out[exact] = z[idx[exact, 0]]
+    return out
+
+
+# --------------------------------------------------------------------------- variogram
+
+
+def _variogram_model(name: str) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """gamma(h; nugget, partial sill, range) for h > 0 (gamma(0) = 0 is set separately)."""
+    def spherical(h, p):
+        r = np.minimum(h / p[2], 1.0)
+        return p[0] + p[1] * (1.5 * r - 0.5 * r ** 3)
+
+    def exponential(h, p):
+        return p[0] + p[1] * (1.0 - np.exp(-3.0 * h / p[2]))
+
+    def gaussian(h, p):
+        return p[0] + p[1] * (1.0 - np.exp(-(h / (4.0 / 7.0 * p[2])) ** 2))
+
+    def linear(h, p):
+        return p[0] + p[1] * h / p[2]
+
+    return {"spherical": spherical, "exponential": exponential, "gaussian": gaussian,
+            "linear": linear}[name]
+
+
+@dataclass(frozen=True)
+class Variogram:
+    """A fitted variogram: gamma(h) = nugget + partial_sill * model(h / range_), m^2."""
+
+    model: str
+    nugget: float
+    partial_sill: float
+    range_: float
+
+    def __call__(self, h: np.ndarray) -> np.ndarray:
+        g = _variogram_model(self.model)(h, np.array([self.nugget, self.partial_sill,
+                                                      self.range_]))
+        return np.where(h > 0, g, 0.0)
+
+
+def fit_variogram(xy: np.ndarray, z: np.ndarray, *, model: str, neighbours: int,
+                  rng: np.random.Generator | int | None = 0) -> Variogram:
+    """Fit a variogram to the samples' semivariances at the lags local kriging uses.
+
+    Pairs: each of up to 3000 random samples with its 4*neighbours nearest (the short
+    lags local kriging sees) plus 20000 random pairs (the sill). Lags are binned by
+    quantiles so every bin holds as many pairs; the model is fitted by least squares with
+    short lags weighted up. A flat or tiny set gives a pure linear variogram.
+    """
+    gen = np.random.default_rng(rng)
+    n = len(xy)
+    if n < 3 or np.ptp(z) == 0:
+        return Variogram(model="linear", nugget=0.0, partial_sill=1.0, range_=1.0)
+    sub = gen.choice(n, min(n, 3000), replace=False)
+    k = min(4 * neighbours + 1, n)
+    _, idx = cKDTree(xy).query(xy[sub], k=k, workers=-1)
+    a = np.concatenate([np.repeat(sub, k - 1), gen.integers(n, size=20000)])
+    b = np.concatenate([idx[:, 1:].ravel(), gen.integers(n, size=20000)])
+    h = np.hypot(*(xy[a] - xy[b]).T)
+    g = 0.5 * (z[a] - z[b]) ** 2
+    ok = h > 0
+    h, g = h[ok], g[ok]
+    edges = np.unique(np.quantile(h, np.linspace(0.0, 1.0, 31)))
+    bins = np.clip(np.searchsorted(edges, h, side="right") - 1, 0, len(edges) - 2)
+    cnt = np.bincount(bins, minlength=len(edges) - 1)
+    use = cnt > 0
+    lag = (np.bincount(bins, weights=h, minlength=len(edges) - 1)[use] / cnt[use])
+    semi = (np.bincount(bins, weights=g, minlength=len(edges) - 1)[use] / cnt[use])
+    fn = _variogram_model(model)
+    top = max(float(semi.max()), 1e-12)
+    p0 = np.array([0.0, top, float(np.median(lag)) if model != "linear" else float(lag.max())])
+    weight = 1.0 / np.sqrt(lag / lag.max())
+
+    def residual(p):
+        return weight * (fn(lag, p) - semi) / top
+
+    fit = least_squares(residual, p0, bounds=([0.0, 0.0, 1e-3 * lag.min() + 1e-9],
+                                              [top, 10.0 * top, 10.0 * lag.max()]))
+    nug, psill, rng_ = (float(v) for v in fit.x)
+    return Variogram(model=model, nugget=nug, partial_sill=max(psill, 1e-12 * top),
+                     range_=rng_)
+
+
+# --------------------------------------------------------------------------- local dual
+
+
+def _local_dual(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray, *, k: int,
+                kernel: Callable[[np.ndarray, float], np.ndarray], linear_drift: bool,
+                diagonal: float) -> np.ndarray:
+    """Evaluate s(x) = sum_i a_i kernel(|x - x_i|) + polynomial over local neighbourhoods.
+
+    For each query the k nearest samples; for each distinct neighbour set one saddle
+    system [K + diagonal*I, P; P', 0][a; c] = [z; 0] with P = [1] (constant) or [1, x, y]
+    (linear drift), solved in stacks of _CHUNK. Coordinates are centred per set and
+    scaled by the median k-th neighbour distance ``scale`` for conditioning; the kernel is
+    called as kernel(distance in metres, scale). Singular stacks (collinear sets with a linear drift) fall back to the
+    pseudo-inverse.
+    """
+    m = len(query_xy)
+    k = min(k, len(xy))
+    tree = cKDTree(xy)
+    dist, idx = tree.query(query_xy, k=k, workers=-1)
+    dist, idx = dist.reshape(m, k), np.sort(idx.reshape(m, k), axis=1)
+    scale = float(np.median(dist[:, -1])) or 1.0
+    sets, inverse = np.unique(idx, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    npoly = 3 if linear_drift else 1
+    size = k + npoly
+    coef = np.empty((len(sets), size))
+    centre = np.empty((len(sets), 2))
+    for lo in range(0, len(sets), _CHUNK):
+        s = sets[lo:lo + _CHUNK]
+        pts = xy[s]
+        c = pts.mean(axis=1)
+        local = (pts - c[:, None, :]) / scale
+        r = np.sqrt(np.sum((local[:, :, None, :] - local[:, None, :, :]) ** 2, axis=3))
+        a = np.zeros((len(s), size, size))
+        a[:, :k, :k] = kernel(r * scale, scale)
+        a[:, np.arange(k), np.arange(k)] += diagonal
+        a[:, :k, k] = a[:, k, :k] = 1.0
+        if linear_drift:
+            a[:, :k, k + 1:] = local
+            a[:, k + 1:, :k] = local.transpose(0, 2, 1)
+        rhs = np.zeros((len(s), size))
+        rhs[:, :k] = z[s]
+        try:
+            coef[lo:lo + len(s)] = np.linalg.solve(a, rhs[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:
+            coef[lo:lo + len(s)] = np.einsum("uij,uj->ui", np.linalg.pinv(a), rhs)
+        centre[lo:lo + len(s)] = c
+    out = np.empty(m)
+    for lo in range(0, m, _CHUNK):
+        q = slice(lo, lo + _CHUNK)
+        u = inverse[q]
+        local_q = (query_xy[q] - centre[u]) / scale
+        local_p = (xy[sets[u]] - centre[u][:, None, :]) / scale
+        r = np.sqrt(np.sum((local_p - local_q[:, None, :]) ** 2, axis=2))
+        val = np.einsum("mk,mk->m", coef[u, :k], kernel(r * scale, scale)) + coef[u, k]
+        if linear_drift:
+            val += np.einsum("mi,mi->m", coef[u, k + 1:], local_q)
+        out[q] = val
+    return out
+
+
+def kriging(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray, *, cfg: KrigingConfig,
+            rng: np.random.Generator | int | None = 0) -> np.ndarray:
+    """Ordinary kriging on the ``cfg.neighbours`` nearest samples of each query."""
+    vg = fit_variogram(xy, z, model=cfg.variogram, neighbours=cfg.neighbours, rng=rng)
+    sill = vg.nugget + vg.partial_sill
+    # A tiny negative diagonal (= a tiny positive covariance nugget) keeps Gaussian
+    # variograms, whose matrices are nearly singular, solvable.
+    return _local_dual(xy, z, query_xy, k=cfg.neighbours, kernel=lambda r, _s: vg(r),
+                       linear_drift=False, diagonal=-1e-10 * sill)
+
+
+def _rbf_kernel(name: str) -> Callable[[np.ndarray], np.ndarray]:
+    """Kernels as in scipy's RBFInterpolator (signs make them conditionally positive)."""
+    def tps(r):
+        return np.where(r > 0, r * r * np.log(np.where(r > 0, r, 1.0)), 0.0)
+
+    return {"thin_plate_spline": tps, "linear": lambda r: -r, "cubic": lambda r: r ** 3,
+            "multiquadric": lambda r: -np.sqrt(1.0 + r * r),
+            "gaussian": lambda r: np.exp(-r * r)}[name]
+
+
+def rbf(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray, *, cfg: RbfConfig) -> np.ndarray:
+    """Local RBF interpolation (linear polynomial) on the ``cfg.neighbours`` nearest
+    samples; distances are in units of the median neighbourhood radius (the shape
+    parameter of the gaussian and multiquadric kernels)."""
+    fn = _rbf_kernel(cfg.kernel)
+    return _local_dual(xy, z, query_xy, k=cfg.neighbours, kernel=lambda r, s: fn(r / s),
+                       linear_drift=True, diagonal=cfg.smoothing)
+
+
+# --------------------------------------------------------------------------- rbf network
+
+
+@dataclass(frozen=True)
+class RbfNetwork:
+    """A trained Gaussian RBF network z = sum_j w_j exp(-(b |u - c_j|)^2) + w_0.
+
+    centres: (J, D) in standardised inputs; weights: (J,); bias: float; b: 0.8326/spread
+    (a unit answers 0.5 at distance ``spread``, as MATLAB's radbas/newrb); mean, std:
+    (D,) of the training inputs; mse: training mean squared error (m^2).
+    """
+
+    centres: np.ndarray
+    weights: np.ndarray
+    bias: float
+    b: float
+    mean: np.ndarray
+    std: np.ndarray
+    mse: float
+
+    @property
+    def neurons(self) -> int:
+        return len(self.centres)
+
+    def predict(self, inputs: np.ndarray) -> np.ndarray:
+        """inputs: (M, D) raw (unstandardised) inputs -> (M,) float64 predictions."""
+        u = (np.asarray(inputs, dtype=np.float64) - self.mean) / self.std
+        out = np.full(len(u), self.bias)
+        for lo in range(0, len(u), _CHUNK):
+            sl = slice(lo, lo + _CHUNK)
+            d2 = np.sum((u[sl, None, :] - self.centres[None]) ** 2, axis=2)
+            out[sl] += np.exp(-(self.b ** 2) * d2) @ self.weights
+        return out
+
+
+def train_rbfnn(inputs: np.ndarray, z: np.ndarray, *, goal: float, spread: float,
+                max_neurons: int) -> RbfNetwork:
+    """Train the paper's RBF network like MATLAB newrb.
+
+    inputs: (N, D) raw features (X, Y[, intensity]); they are standardised inside. One
+    Gaussian unit at a time is centred on the training sample with the largest residual;
+    the output weights are the least-squares fit of all units plus a bias, kept up to date
+    by Gram-Schmidt (orthogonal least squares), so each step costs O(N J). Stops when the
+    training MSE <= goal (m^2) or after ``max_neurons`` units.
+    """
+    x = np.asarray(inputs, dtype=np.float64)
+    z = np.asarray(z, dtype=np.float64)
+    mean = x.mean(axis=0)
+    std = x.std(axis=0, ddof=1) if len(x) > 1 else np.ones(x.shape[1])
+    std = np.where(std > 0, std, 1.0)
+    u = (x - mean) / std
+    n = len(u)
+    b = float(np.sqrt(np.log(2.0)) / spread)
+    q = np.zeros((n, max_neurons + 1))
+    r_mat = np.zeros((max_neurons + 1, max_neurons + 1))
+    q[:, 0] = 1.0 / np.sqrt(n)
+    r_mat[0, 0] = np.sqrt(n)
+    resid = z - z.mean()
+    proj = [float(q[:, 0] @ z)]
+    centres: list[int] = []
+    usable = np.ones(n, dtype=bool)
+    j = 1
+    while j <= max_neurons and np.mean(resid ** 2) > goal and usable.any():
+        i = int(np.argmax(np.where(usable, np.abs(resid), -1.0)))
+        usable[i] = False
+        phi = np.exp(-(b ** 2) * np.sum((u - u[i]) ** 2, axis=1))
+        coeffs = q[:, :j].T @ phi
+        v = phi - q[:, :j] @ coeffs
+        again = q[:, :j].T @ v  # second Gram-Schmidt pass: orthogonality to machine precision
+        v -= q[:, :j] @ again
+        norm = float(np.linalg.norm(v))
+        if norm <= 1e-8 * float(np.linalg.norm(phi)):
+            continue  # this unit adds nothing the others do not span
+        q[:, j] = v / norm
+        r_mat[:j, j] = coeffs + again
+        r_mat[j, j] = norm
+        proj.append(float(q[:, j] @ resid))
+        resid = resid - proj[-1] * q[:, j]
+        centres.append(i)
+        j += 1
+    w = solve_triangular(r_mat[:j, :j], np.asarray(proj[:j]))
+    return RbfNetwork(centres=u[centres], weights=w[1:], bias=float(w[0]), b=b, mean=mean,
+                      std=std, mse=float(np.mean(resid ** 2)))
+
+
+# --------------------------------------------------------------------------- entry
+
+
+def interpolate(method: str, xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray, *,
+                kriging_cfg: KrigingConfig = KrigingConfig(), rbf_cfg: RbfConfig = RbfConfig(),
+                rbfnn_cfg: RbfnnConfig = RbfnnConfig(), idw_neighbours: int = 8,
+                idw_power: float = 2.0, intensity: np.ndarray | None = None,
+                query_intensity: np.ndarray | None = None,
+                rng: np.random.Generator | int | None = 0) -> np.ndarray:
+    """Interpolate samples (xy (N, 2) metres, z (N,) metres) at query_xy (M, 2) metres.
+
+    method: one of METHODS. Returns (M,) float64, NaN where the method is undefined
+    (outside the hull for ``tin``, no samples at all). ``rbfnn`` uses intensity (N,) as a
+    third input when ``rbfnn_cfg.use_intensity`` and intensity is given; the queries' own
+    intensity (M,) is then needed too (missing: the nearest sample's). Raises
+    CloudFormatError for bad shapes or an unknown method.
+    """
+    if method not in METHODS:
+        raise CloudFormatError(f"interpolate: unknown method {method!r}; expected one of "
+                               f"{', '.join(METHODS)}")
+    xy, z, q = _check(xy, z, query_xy)
+    use_int = method == "rbfnn" and rbfnn_cfg.use_intensity and intensity is not None
+    if use_int:
+        xy, z, inten = merge_coincident(xy, z, extra=np.asarray(intensity, dtype=np.float64))
+    else:
+        xy, z = merge_coincident(xy, z)
+    if len(xy) == 0 or len(q) == 0:
+        return np.full(len(q), np.nan)
+    if method == "tin":
+        return tin(xy, z, q)
+    if method == "idw" or len(xy) == 1:
+        return idw(xy, z, q, neighbours=idw_neighbours, power=idw_power)
+    if method == "kriging":
+        return kriging(xy, z, q, cfg=kriging_cfg, rng=rng)
+    if method == "rbf":
+        return rbf(xy, z, q, cfg=rbf_cfg)
+    inputs, query_inputs = xy, q
+    if use_int:
+        if query_intensity is None:
+            _, near = cKDTree(xy).query(q, k=1, workers=-1)
+            query_intensity = inten[near]
+        inputs = np.column_stack([xy, inten])
+        query_inputs = np.column_stack([q, np.asarray(query_intensity, dtype=np.float64)])
+    net = train_rbfnn(inputs, z, goal=rbfnn_cfg.goal, spread=rbfnn_cfg.spread,
+                      max_neurons=rbfnn_cfg.max_neurons)
+    return net.predict(query_inputs)

@@ -1,0 +1,112 @@
+"""Bag containers: round trips in every storage, ROS 1 reading, atomic writes, clear errors."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lidar_obstacles.errors import BagError
+from lidar_obstacles.io.bags import POINTCLOUD2, BagReader, BagWriter, typestore
+from lidar_obstacles.io.pointcloud2 import make_pointcloud2, read_points
+
+
+def _points(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    pts = np.zeros(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"),
+                             ("classification", "u1")])
+    for name in ("x", "y", "z", "intensity"):
+        pts[name] = rng.normal(size=n)
+    pts["classification"] = rng.integers(0, 20, n)
+    return pts
+
+
+def _rosbags_cloud(points: np.ndarray, stamp_ns: int = 0):
+    ts = typestore()
+    Header, Time = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
+    hdr = Header(stamp=Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9), frame_id="map")
+    return make_pointcloud2(points, header=hdr, msg_cls=ts.types[POINTCLOUD2],
+                            field_cls=ts.types["sensor_msgs/msg/PointField"])
+
+
+def _write(path, clouds, storage="mcap"):
+    with BagWriter(path, storage=storage) as bag:
+        bag.add_topic("/points", POINTCLOUD2)
+        for i, pts in enumerate(clouds):
+            raw = typestore().serialize_cdr(_rosbags_cloud(pts, i * 10**8), POINTCLOUD2)
+            bag.write("/points", i * 10**8, bytes(raw))
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_rosbag2_round_trip(tmp_path, storage):
+    clouds = [_points(100 + i, seed=i) for i in range(3)]
+    _write(tmp_path / "bag", clouds, storage)
+    assert not list(tmp_path.glob(".bag.partial*"))
+    with BagReader(tmp_path / "bag") as reader:
+        assert reader.pointcloud_topic() == "/points"
+        got = [read_points(reader.deserialize(r)) for r in reader.records()]
+    assert len(got) == 3
+    for a, b in zip(clouds, got):
+        assert a.tobytes() == np.ascontiguousarray(b).tobytes()
+
+
+def test_ros1_bag_is_read(tmp_path):
+    from rosbags.rosbag1 import Writer as Ros1Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ros1 = get_typestore(Stores.ROS1_NOETIC)
+    pts = _points(50)
+    Header = ros1.types["std_msgs/msg/Header"]
+    Time = ros1.types["builtin_interfaces/msg/Time"]
+    msg = make_pointcloud2(pts, header=Header(seq=0, stamp=Time(sec=1, nanosec=0), frame_id="map"),
+                           msg_cls=ros1.types[POINTCLOUD2],
+                           field_cls=ros1.types["sensor_msgs/msg/PointField"])
+    path = tmp_path / "old.bag"
+    with Ros1Writer(path) as w:
+        conn = w.add_connection("/velodyne_points", POINTCLOUD2, typestore=ros1)
+        w.write(conn, 10**9, ros1.serialize_ros1(msg, POINTCLOUD2))
+    with BagReader(path) as reader:
+        assert reader.pointcloud_topic() == "/velodyne_points"
+        (record,) = list(reader.records())
+        assert record.ros1
+        assert read_points(reader.deserialize(record)).tobytes() == pts.tobytes()
+
+
+def test_failed_write_leaves_nothing_and_keeps_the_old_bag(tmp_path):
+    _write(tmp_path / "bag", [_points(10)])
+    before = sorted(p.name for p in (tmp_path / "bag").iterdir())
+    with pytest.raises(RuntimeError):
+        with BagWriter(tmp_path / "bag") as bag:
+            bag.add_topic("/points", POINTCLOUD2)
+            raise RuntimeError("interrupted")
+    assert sorted(p.name for p in (tmp_path / "bag").iterdir()) == before
+    assert [p.name for p in tmp_path.iterdir()] == ["bag"]
+    with BagReader(tmp_path / "bag") as reader:
+        assert reader.count(["/points"]) == 1
+
+
+def test_bad_bags_raise_one_clear_error(tmp_path):
+    with pytest.raises(BagError, match="not found"):
+        BagReader(tmp_path / "missing").__enter__()
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(BagError, match="cannot open bag"):
+        BagReader(tmp_path / "empty").__enter__()
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"this is not a bag" * 100)
+    with pytest.raises(BagError, match="cannot open bag"):
+        BagReader(junk).__enter__()
+    # Truncated: cut a valid mcap in half.
+    _write(tmp_path / "full", [_points(2000, seed=i) for i in range(5)])
+    mcap = next((tmp_path / "full").glob("*.mcap"))
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(mcap.read_bytes()[: mcap.stat().st_size // 2])
+    with pytest.raises(BagError):
+        with BagReader(cut) as reader:
+            list(reader.records())
+    # A bag without clouds.
+    with BagWriter(tmp_path / "odom_only") as bag:
+        bag.add_topic("/odom", "nav_msgs/msg/Odometry")
+    with BagReader(tmp_path / "odom_only") as reader:
+        with pytest.raises(BagError, match="no PointCloud2"):
+            reader.pointcloud_topic()
+    with BagReader(tmp_path / "full") as reader:
+        with pytest.raises(BagError, match="no PointCloud2 topic '/nope'"):
+            reader.pointcloud_topic("/nope")

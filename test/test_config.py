@@ -1,0 +1,92 @@
+"""The one config schema: validation, params files, the generated YAML in config/."""
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from conftest import REPO
+from lidar_obstacles.config import (
+    NODE_CONFIGS,
+    DemBuilderConfig,
+    ObstacleDetectorConfig,
+    dump_ros_yaml,
+    flatten,
+    load_params_file,
+    params_of,
+    replace,
+)
+from lidar_obstacles.errors import ConfigError
+
+
+def test_every_parameter_is_documented_with_range_or_choices():
+    for cls in NODE_CONFIGS.values():
+        for p in params_of(cls):
+            assert p.spec.description, p.name
+            if p.type in (int, float):
+                assert p.spec.min is not None and p.spec.max is not None, p.name
+                assert p.spec.min <= p.default <= p.spec.max, p.name
+            if p.spec.choices:
+                assert p.default in p.spec.choices, p.name
+
+
+def test_config_files_are_generated_from_the_schema():
+    for node, cls in NODE_CONFIGS.items():
+        text = (REPO / "config" / f"{node}.yaml").read_text()
+        assert dump_ros_yaml(cls(), node) in text, (
+            f"config/{node}.yaml is stale: run `python -m lidar_obstacles.config config`")
+        assert load_params_file(REPO / "config" / f"{node}.yaml", cls, node) == cls()
+
+
+def test_replace_validates_and_is_all_or_nothing():
+    cfg = ObstacleDetectorConfig()
+    new = replace(cfg, {"ransac.distance_threshold": 0.5, "tiling.size": 20})
+    assert new.ransac.distance_threshold == 0.5 and new.tiling.size == 20.0
+    assert cfg.ransac.distance_threshold != 0.5  # frozen, untouched
+    with pytest.raises(ConfigError, match="ransac.distance_threshold.*range"):
+        replace(cfg, {"tiling.size": 30.0, "ransac.distance_threshold": -1.0})
+    with pytest.raises(ConfigError, match="unknown parameter 'nope'"):
+        replace(cfg, {"nope": 1})
+    with pytest.raises(ConfigError, match="ground.method"):
+        replace(cfg, {"ground.method": "magic"})
+    with pytest.raises(ConfigError, match="expected an integer"):
+        replace(cfg, {"tin.max_iterations": 2.5})
+    with pytest.raises(ConfigError, match="expected true or false"):
+        replace(cfg, {"use_odometry": 1})
+    with pytest.raises(ConfigError, match="finite"):
+        replace(cfg, {"tiling.size": float("nan")})
+
+
+def test_params_file_forms(tmp_path):
+    nested = tmp_path / "nested.yaml"
+    nested.write_text("/**:\n  ros__parameters:\n    tiling:\n      size: 25.0\n"
+                      "    dem:\n      resolution: 0.5\n")
+    det = load_params_file(nested, ObstacleDetectorConfig, "obstacle_detector")
+    dem = load_params_file(nested, DemBuilderConfig, "dem_builder")
+    assert det.tiling.size == 25.0 and dem.dem.resolution == 0.5 and dem.tiling.size == 25.0
+    dotted = tmp_path / "dotted.yaml"
+    dotted.write_text("obstacle_detector:\n  ros__parameters:\n    ransac.distance_threshold: 0.4\n"
+                      "dem_builder:\n  ros__parameters:\n    dem.resolution: 2.0\n")
+    assert load_params_file(dotted, ObstacleDetectorConfig, "obstacle_detector") \
+        .ransac.distance_threshold == 0.4
+    assert load_params_file(dotted, ObstacleDetectorConfig, "obstacle_detector") \
+        .tiling == ObstacleDetectorConfig().tiling
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("/**:\n  ros__parameters:\n    tiling:\n      sise: 25.0\n")
+    with pytest.raises(ConfigError, match="unknown parameter 'tiling.sise'"):
+        load_params_file(bad, ObstacleDetectorConfig, "obstacle_detector")
+    with pytest.raises(ConfigError, match="not found"):
+        load_params_file(tmp_path / "missing.yaml", ObstacleDetectorConfig, "x")
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("a: [1, 2\n")
+    with pytest.raises(ConfigError, match="broken.yaml"):
+        load_params_file(broken, ObstacleDetectorConfig, "obstacle_detector")
+
+
+def test_flatten_roundtrip():
+    cfg = DemBuilderConfig()
+    flat = flatten(cfg)
+    assert set(flat) == {p.name for p in params_of(DemBuilderConfig)}
+    assert replace(cfg, flat) == cfg
+    assert all(dataclasses.is_dataclass(getattr(cfg, f.name)) or f.name in flat
+               for f in dataclasses.fields(cfg))

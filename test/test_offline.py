@@ -1,0 +1,175 @@
+"""The offline commands end to end: simulate, las2bag, replay, export-dem, and their errors."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import DATA, REPO, data_file
+from lidar_obstacles.cli import main
+from lidar_obstacles.io.bags import BagReader
+from lidar_obstacles.io.pointcloud2 import read_points
+
+SHARED_FILES = sorted(str(p.relative_to(DATA)) for p in DATA.rglob("*.laz")) if DATA.is_dir() else []
+
+
+def run_cli(*args: str) -> dict:
+    """Run the CLI in-process; return its JSON summary."""
+    import contextlib
+    import io
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        code = main([str(a) for a in args])
+    assert code == 0, buf.getvalue()
+    return json.loads(buf.getvalue())
+
+
+def cli_subprocess(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "lidar_obstacles.cli", *map(str, args)],
+                          cwd=REPO, capture_output=True, text=True, timeout=300)
+
+
+def clouds(bag: Path, topic: str) -> list[np.ndarray]:
+    with BagReader(bag) as reader:
+        return [np.asarray(read_points(reader.deserialize(r), keep_non_finite=True)).reshape(-1)
+                for r in reader.records([topic])]
+
+
+@pytest.fixture(scope="module")
+def sim_bag(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("sim") / "flight"
+    summary = run_cli("simulate", out, "--duration", "2", "--seed", "3")
+    assert summary["messages"] == 20
+    return out
+
+
+def test_simulate_then_replay_keeps_every_point_and_field(sim_bag, tmp_path):
+    out = tmp_path / "replayed"
+    summary = run_cli("replay", sim_bag, out)
+    assert summary["messages"] == 20 and summary["rejected"] == 0
+    inputs = clouds(sim_bag, "/points")
+    ground, obstacles = clouds(out, "/ground"), clouds(out, "/obstacles")
+    assert len(ground) == len(obstacles) == 20
+    for src, g, o in zip(inputs, ground, obstacles):
+        both = np.concatenate([g, o])
+        assert len(both) == len(src)
+        # every input field kept byte for byte, two fields added
+        assert both.dtype.names == src.dtype.names + ("class", "height_above_ground")
+        order = np.argsort(both["point_id"])
+        for name in src.dtype.names:
+            assert both[name][order].tobytes() == np.sort(src, order="point_id")[name].tobytes()
+        assert (g["class"] == 2).all() and (o["class"] != 2).all()
+    with BagReader(out) as reader:
+        names = {t.topic for t in reader.topics()}
+    assert {"/ground", "/obstacles", "/obstacle_markers", "/clearance", "/dem", "/dem_image",
+            "/dem_info", "/odom"} <= names
+
+
+def test_sensor_frame_flight_needs_and_uses_odometry(tmp_path):
+    sensor = tmp_path / "sensor"
+    run_cli("simulate", sensor, "--duration", "1", "--frame", "sensor", "--seed", "3")
+    params = tmp_path / "odom.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    use_odometry: true\n")
+    out = tmp_path / "out"
+    summary = run_cli("replay", sensor, out, "--params-file", params, "--no-dem")
+    assert summary["messages"] == 10
+    with BagReader(out) as reader:
+        rec = next(reader.records(["/obstacles"]))
+        assert reader.deserialize(rec).header.frame_id == "map"
+    # The same flight in the map frame gives the same classes.
+    mapped = tmp_path / "map"
+    run_cli("simulate", mapped, "--duration", "1", "--seed", "3")
+    a, b = clouds(out, "/ground")[-1], None
+    run_cli("replay", mapped, tmp_path / "out_map", "--no-dem")
+    b = clouds(tmp_path / "out_map", "/ground")[-1]
+    agree = np.intersect1d(a["point_id"], b["point_id"]).size / max(len(b), 1)
+    assert agree > 0.97
+
+
+def test_replay_is_deterministic(sim_bag, tmp_path):
+    run_cli("replay", sim_bag, tmp_path / "a", "--no-dem")
+    run_cli("replay", sim_bag, tmp_path / "b", "--no-dem")
+    for x, y in zip(clouds(tmp_path / "a", "/obstacles"), clouds(tmp_path / "b", "/obstacles")):
+        assert x.tobytes() == y.tobytes()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", SHARED_FILES)
+def test_las2bag_and_replay_every_shared_file(name, tmp_path):
+    src = data_file(name)
+    bag = tmp_path / "bag"
+    summary = run_cli("las2bag", src, bag)
+    from lidar_obstacles.io.las import read_las
+
+    las = read_las(src)
+    got = clouds(bag, "/points")
+    assert summary["points"] == len(las.points) == sum(len(c) for c in got)
+    ids = np.sort(np.concatenate([c["point_id"] for c in got]))
+    assert (ids == np.arange(len(las.points))).all()
+    first = got[0]
+    assert first.dtype["x"] == np.float64
+    np.testing.assert_array_equal(first["x"], las.points["x"][first["point_id"]])
+    np.testing.assert_array_equal(first["classification"],
+                                  las.points["classification"][first["point_id"]])
+    if las.has_gps_time and np.ptp(las.points["gps_time"]) > 0:
+        assert summary["sliced_by"] == "gps_time"
+        for c in got[:20]:
+            assert np.ptp(c["gps_time"]) < 0.1 + 1e-9
+    out = tmp_path / "out"
+    replayed = run_cli("replay", bag, out, "--no-dem")
+    assert replayed["messages"] == summary["messages"] and replayed["rejected"] == 0
+
+
+def test_las2bag_tiles(tmp_path):
+    src = data_file("isprs/samp11-utm.laz")
+    summary = run_cli("las2bag", src, tmp_path / "bag", "--tile-size", "50")
+    assert summary["sliced_by"] == "tiles"
+    for c in clouds(tmp_path / "bag", "/points"):
+        assert np.ptp(c["x"]) <= 50 and np.ptp(c["y"]) <= 50
+
+
+def test_export_dem_lands_on_survey_coordinates(tmp_path):
+    src = data_file("isprs/samp51-utm.laz")
+    run_cli("las2bag", src, tmp_path / "bag")
+    summary = run_cli("export-dem", tmp_path / "bag", tmp_path / "dem.tif")
+    assert summary["crs"] == "EPSG:32632"
+    from lidar_obstacles.io.geotiff import read_geotiff
+    from lidar_obstacles.io.las import read_las
+
+    dem = read_geotiff(tmp_path / "dem.tif")
+    las = read_las(src).points
+    ground = las[las["classification"] == 2]
+    x0, y_top = dem.origin[0], dem.origin[1] + dem.elevation.shape[0] * dem.resolution
+    assert abs(x0 - ground["x"].min()) < 5 and abs(y_top - ground["y"].max()) < 5
+    assert (tmp_path / "dem_hillshade.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["replay", "/nonexistent/bag", "OUT"], "bag not found"),
+    (["las2bag", "/nonexistent.laz", "OUT"], "LAS file not found"),
+    (["export-dem", "/nonexistent/bag", "OUT.tif"], "bag not found"),
+])
+def test_bad_input_is_one_line_and_exit_2(args, expected, tmp_path):
+    res = cli_subprocess(*[a.replace("OUT", str(tmp_path / "o")) for a in args])
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and expected in lines[0], res.stderr
+    assert not list(tmp_path.iterdir())
+
+
+def test_corrupt_bag_and_bad_params_exit_2(sim_bag, tmp_path):
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"\x89MCAP0\r\n" + b"\x00" * 100)
+    res = cli_subprocess("replay", junk, tmp_path / "o")
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1
+    params = tmp_path / "bad.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    ransac:\n      distance_threshold: -3.0\n")
+    res = cli_subprocess("replay", sim_bag, tmp_path / "o", "--params-file", params)
+    assert res.returncode == 2
+    assert "ransac.distance_threshold" in res.stderr and len(res.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()
