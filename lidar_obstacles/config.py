@@ -509,6 +509,25 @@ def dump_ros_yaml(cfg: Any, node_name: str = "/**") -> str:
     return "\n".join(lines) + "\n"
 
 
+def markdown_tables() -> str:
+    """The parameter reference (docs/parameters.md), one table per node, from the schema."""
+    out = ["# Parameters", "",
+           "Generated from `lidar_obstacles/config.py` by `python -m lidar_obstacles.config`;",
+           "a test keeps it current. Set them with `-p name:=value`, `--params-file FILE`",
+           "(nodes, `replay`, `export-dem`) or at runtime (`ros2 param set`); out-of-range",
+           "values are rejected with the reason.", ""]
+    for node, cls in NODE_CONFIGS.items():
+        out += [f"## `{node}`", "", "| name | default | unit | range | description |",
+                "|---|---|---|---|---|"]
+        for p in params_of(cls):
+            rng = p.spec.range_text().replace("range ", "").replace("one of: ", "")
+            flags = " (read-only)" if p.spec.read_only else ""
+            out.append(f"| `{p.name}` | `{_yaml_scalar(p.default)}` | {p.spec.unit} | {rng} | "
+                       f"{p.spec.description}{flags} |")
+        out.append("")
+    return "\n".join(out)
+
+
 def write_config_files(folder: str | Path) -> list[Path]:
     """Write ``<node>.yaml`` for every node from the schema (what ``config/`` holds)."""
     folder = Path(folder)
@@ -516,7 +535,7 @@ def write_config_files(folder: str | Path) -> list[Path]:
     for node, cls in NODE_CONFIGS.items():
         path = folder / f"{node}.yaml"
         header = (f"# Parameters of `{node}`, generated from lidar_obstacles/config.py\n"
-                  f"# (python -m lidar_obstacles.config config/). Each line: default, then\n"
+                  f"# (python -m lidar_obstacles.config). Each line: default, then\n"
                   f"# description [unit] and range. Load with --ros-args --params-file.\n")
         path.write_text(header + dump_ros_yaml(cls(), node))
         written.append(path)
@@ -524,7 +543,9 @@ def write_config_files(folder: str | Path) -> list[Path]:
 
 
 if __name__ == "__main__":
-    import sys
-
-    for written_path in write_config_files(sys.argv[1] if len(sys.argv) > 1 else "config"):
+    # Regenerate config/*.yaml and docs/parameters.md from the schema.
+    for written_path in write_config_files("config"):
         print(written_path)
+    Path("docs").mkdir(exist_ok=True)
+    Path("docs/parameters.md").write_text(markdown_tables())
+    print("docs/parameters.md")

@@ -34,8 +34,15 @@ def test_config_files_are_generated_from_the_schema():
     for node, cls in NODE_CONFIGS.items():
         text = (REPO / "config" / f"{node}.yaml").read_text()
         assert dump_ros_yaml(cls(), node) in text, (
-            f"config/{node}.yaml is stale: run `python -m lidar_obstacles.config config`")
+            f"config/{node}.yaml is stale: run `python -m lidar_obstacles.config`")
         assert load_params_file(REPO / "config" / f"{node}.yaml", cls, node) == cls()
+
+
+def test_parameter_docs_are_generated_from_the_schema():
+    from lidar_obstacles.config import markdown_tables
+
+    assert (REPO / "docs" / "parameters.md").read_text() == markdown_tables(), (
+        "docs/parameters.md is stale: run `python -m lidar_obstacles.config`")
 
 
 def test_replace_validates_and_is_all_or_nothing():

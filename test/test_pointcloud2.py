@@ -31,6 +31,7 @@ from lidar_obstacles.io.pointcloud2 import (
     finite_mask,
     make_pointcloud2,
     read_points,
+    select_points,
     to_native,
     xyz_of,
 )
@@ -353,6 +354,20 @@ def test_append_fields_details():
         append_fields(points, {"class": np.zeros(4, np.uint8)})
     with pytest.raises(CloudFormatError, match="bool"):
         append_fields(points, {"flag": np.zeros(3, bool)})
+
+
+def test_select_points_keeps_every_byte():
+    raw = np.random.default_rng(3).integers(0, 256, 2 * 5 * 32, np.uint8)
+    organized = raw.view(simple_points(1).dtype).reshape(2, 5)
+    mask = np.zeros((2, 5), bool)
+    mask[0, 1] = mask[1, 3] = mask[1, 4] = True
+    picked = select_points(organized, mask)
+    assert picked.shape == (3,) and picked.dtype == organized.dtype
+    assert picked.tobytes() == raw.reshape(10, 32)[[1, 8, 9]].tobytes()  # padding too
+    assert np.array_equal(picked["ring"], organized["ring"][mask])
+    by_index = select_points(organized, np.array([9, 1]))
+    assert by_index.tobytes() == raw.reshape(10, 32)[[9, 1]].tobytes()
+    assert select_points(organized, np.zeros((2, 5), bool)).shape == (0,)
 
 
 def test_fields_and_dtype_are_inverse():

@@ -211,55 +211,61 @@ def _local_dual(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray, *, k: int,
                 diagonal: float) -> np.ndarray:
     """Evaluate s(x) = sum_i a_i kernel(|x - x_i|) + polynomial over local neighbourhoods.
 
-    For each query the k nearest samples; for each distinct neighbour set one saddle
-    system [K + diagonal*I, P; P', 0][a; c] = [z; 0] with P = [1] (constant) or [1, x, y]
-    (linear drift), solved in stacks of _CHUNK. Coordinates are centred per set and
-    scaled by the median k-th neighbour distance ``scale`` for conditioning; the kernel is
-    called as kernel(distance in metres, scale). Singular stacks (collinear sets with a linear drift) fall back to the
-    pseudo-inverse.
+    Queries are grouped in square blocks one mean sample spacing wide; a block's
+    neighbourhood is the k samples nearest to its queries' mean, so a grid denser than
+    the data solves about one system per sample instead of one per cell, and every query
+    stays well inside its neighbourhood (radius ~ sqrt(k/pi) spacings). Each block solves
+    the saddle system [K + diagonal*I, P; P', 0][a; c] = [z; 0] with P = [1] (constant)
+    or [1, x, y] (linear drift), stacked _CHUNK at a time. Coordinates are centred per
+    block and scaled by ``scale`` (the median distance to the k-th neighbour) for
+    conditioning; the kernel is called as kernel(squared distance / scale^2, scale). A
+    singular
+    stack (collinear samples with a linear drift) falls back to the pseudo-inverse.
     """
     m = len(query_xy)
     k = min(k, len(xy))
+    lo_xy = xy.min(axis=0)
+    extent = np.maximum(xy.max(axis=0) - lo_xy, 1e-9)
+    spacing = float(np.sqrt(extent[0] * extent[1] / len(xy))) or float(extent.max() / len(xy))
+    cells = np.floor((query_xy - lo_xy) / spacing).astype(np.int64)
+    _, block, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    block = block.ravel()
+    centre = np.column_stack([np.bincount(block, weights=query_xy[:, i]) / counts
+                              for i in range(2)])
     tree = cKDTree(xy)
-    dist, idx = tree.query(query_xy, k=k, workers=-1)
-    dist, idx = dist.reshape(m, k), np.sort(idx.reshape(m, k), axis=1)
+    dist, sets = tree.query(centre, k=k, workers=-1)
+    dist, sets = dist.reshape(len(centre), k), sets.reshape(len(centre), k)
     scale = float(np.median(dist[:, -1])) or 1.0
-    sets, inverse = np.unique(idx, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
     npoly = 3 if linear_drift else 1
     size = k + npoly
     coef = np.empty((len(sets), size))
-    centre = np.empty((len(sets), 2))
+    diag = np.arange(k)
     for lo in range(0, len(sets), _CHUNK):
         s = sets[lo:lo + _CHUNK]
-        pts = xy[s]
-        c = pts.mean(axis=1)
-        local = (pts - c[:, None, :]) / scale
-        r = np.sqrt(np.sum((local[:, :, None, :] - local[:, None, :, :]) ** 2, axis=3))
+        local = (xy[s] - centre[lo:lo + _CHUNK, None, :]) / scale
+        sq = np.einsum("uki,uki->uk", local, local)
+        r2 = sq[:, :, None] + sq[:, None, :] - 2.0 * np.einsum("uki,uli->ukl", local, local)
         a = np.zeros((len(s), size, size))
-        a[:, :k, :k] = kernel(r * scale, scale)
-        a[:, np.arange(k), np.arange(k)] += diagonal
+        a[:, :k, :k] = kernel(np.maximum(r2, 0.0), scale)
+        a[:, diag, diag] = diagonal
         a[:, :k, k] = a[:, k, :k] = 1.0
         if linear_drift:
             a[:, :k, k + 1:] = local
             a[:, k + 1:, :k] = local.transpose(0, 2, 1)
-        rhs = np.zeros((len(s), size))
-        rhs[:, :k] = z[s]
+        rhs = np.zeros((len(s), size, 1))
+        rhs[:, :k, 0] = z[s]
         try:
-            coef[lo:lo + len(s)] = np.linalg.solve(a, rhs[:, :, None])[:, :, 0]
+            coef[lo:lo + len(s)] = np.linalg.solve(a, rhs)[:, :, 0]
         except np.linalg.LinAlgError:
-            coef[lo:lo + len(s)] = np.einsum("uij,uj->ui", np.linalg.pinv(a), rhs)
-        centre[lo:lo + len(s)] = c
+            coef[lo:lo + len(s)] = (np.linalg.pinv(a) @ rhs)[:, :, 0]
     out = np.empty(m)
     for lo in range(0, m, _CHUNK):
         q = slice(lo, lo + _CHUNK)
-        u = inverse[q]
-        local_q = (query_xy[q] - centre[u]) / scale
-        local_p = (xy[sets[u]] - centre[u][:, None, :]) / scale
-        r = np.sqrt(np.sum((local_p - local_q[:, None, :]) ** 2, axis=2))
-        val = np.einsum("mk,mk->m", coef[u, :k], kernel(r * scale, scale)) + coef[u, k]
+        u = block[q]
+        d2 = np.sum((xy[sets[u]] - query_xy[q, None, :]) ** 2, axis=2) / scale ** 2
+        val = np.einsum("mk,mk->m", coef[u, :k], kernel(d2, scale)) + coef[u, k]
         if linear_drift:
-            val += np.einsum("mi,mi->m", coef[u, k + 1:], local_q)
+            val += np.einsum("mi,mi->m", coef[u, k + 1:], (query_xy[q] - centre[u]) / scale)
         out[q] = val
     return out
 
@@ -271,18 +277,20 @@ def kriging(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray, *, cfg: Kriging
     sill = vg.nugget + vg.partial_sill
     # A tiny negative diagonal (= a tiny positive covariance nugget) keeps Gaussian
     # variograms, whose matrices are nearly singular, solvable.
-    return _local_dual(xy, z, query_xy, k=cfg.neighbours, kernel=lambda r, _s: vg(r),
+    return _local_dual(xy, z, query_xy, k=cfg.neighbours,
+                       kernel=lambda r2, scale: vg(np.sqrt(r2) * scale),
                        linear_drift=False, diagonal=-1e-10 * sill)
 
 
 def _rbf_kernel(name: str) -> Callable[[np.ndarray], np.ndarray]:
-    """Kernels as in scipy's RBFInterpolator (signs make them conditionally positive)."""
-    def tps(r):
-        return np.where(r > 0, r * r * np.log(np.where(r > 0, r, 1.0)), 0.0)
+    """Kernels of the SQUARED distance, as in scipy's RBFInterpolator (signs make them
+    conditionally positive definite). r^2 log r = r2 log(r2) / 2, 0 at r = 0."""
+    def tps(r2):
+        return 0.5 * r2 * np.log(np.maximum(r2, 1e-300))
 
-    return {"thin_plate_spline": tps, "linear": lambda r: -r, "cubic": lambda r: r ** 3,
-            "multiquadric": lambda r: -np.sqrt(1.0 + r * r),
-            "gaussian": lambda r: np.exp(-r * r)}[name]
+    return {"thin_plate_spline": tps, "linear": lambda r2: -np.sqrt(r2),
+            "cubic": lambda r2: r2 * np.sqrt(r2), "multiquadric": lambda r2: -np.sqrt(1.0 + r2),
+            "gaussian": lambda r2: np.exp(-r2)}[name]
 
 
 def rbf(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray, *, cfg: RbfConfig) -> np.ndarray:
@@ -290,7 +298,7 @@ def rbf(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray, *, cfg: RbfConfig) 
     samples; distances are in units of the median neighbourhood radius (the shape
     parameter of the gaussian and multiquadric kernels)."""
     fn = _rbf_kernel(cfg.kernel)
-    return _local_dual(xy, z, query_xy, k=cfg.neighbours, kernel=lambda r, s: fn(r / s),
+    return _local_dual(xy, z, query_xy, k=cfg.neighbours, kernel=lambda r2, _scale: fn(r2),
                        linear_drift=True, diagonal=cfg.smoothing)
 
 
