@@ -196,6 +196,13 @@ class DemConfig:
                            min=100, max=400_000_000)
     publish_rate: float = param(1.0, "how often `dem`, `dem_image` and `dem_info` are "
                                 "published", "Hz", min=0.01, max=50.0)
+    fill_distance: float = param(
+        20.0, "empty cells are interpolated only within this distance of a measured cell "
+        "(no extrapolation beyond it)", "m", min=0.0, max=10000.0)
+    idw_neighbours: int = param(8, "`idw`: nearest samples averaged per cell", min=1,
+                                max=256)
+    idw_power: float = param(2.0, "`idw`: weights are 1 / distance^power", min=0.1,
+                             max=10.0)
 
 
 @dataclass(frozen=True)

@@ -69,7 +69,7 @@ _CONTENT_HALF = 540.0     # objects are placed inside [-h, h]^2, m
 _CELL = 20.0              # m, spatial grid for culling
 _CULL_MARGIN = 0.6        # m, bounding boxes grow by this (pulse origins move in a frame)
 _PULSE_SEPARATION = 0.8   # m, two echoes of one pulse are at least this far apart
-_ECHO_CONTINUE = {"veg": 0.72, "wire": 0.95, "tower": 0.85}
+_ECHO_CONTINUE = {"veg": 0.6, "wire": 0.95, "tower": 0.85}
 
 
 @dataclass(frozen=True)
@@ -1138,18 +1138,21 @@ def _hit_segments(scene: _Scene, ray, idx, o, d, wire_radius: float):
 def _hit_ellipsoids(scene: _Scene, ray, idx, o, d):
     """Ray intervals [t_in, t_out] inside crowns / shrubs, and their extinction, 1/m."""
     e = scene.ell[idx]
-    rad = e[:, 3:6]
-    oc = (o[ray] - e[:, 0:3]) / rad
-    dc = d[ray] / rad
-    a = np.einsum("ij,ij->i", dc, dc)
-    b = np.einsum("ij,ij->i", oc, dc)
-    c = np.einsum("ij,ij->i", oc, oc) - 1.0
-    disc = b * b - a * c
-    root = np.sqrt(np.maximum(disc, 0.0))
-    t0 = (-b - root) / a
-    t1 = (-b + root) / a
-    hit = (disc > 0) & (t1 > 0)
-    return hit, np.maximum(t0, 0.0), t1, e[:, 6]
+    # Component-wise: faster than einsum on (K, 3) gathers for 10^5 pairs.
+    ox = (o[ray, 0] - e[:, 0]) / e[:, 3]
+    oy = (o[ray, 1] - e[:, 1]) / e[:, 4]
+    oz = (o[ray, 2] - e[:, 2]) / e[:, 5]
+    dx = d[ray, 0] / e[:, 3]
+    dy = d[ray, 1] / e[:, 4]
+    dz = d[ray, 2] / e[:, 5]
+    a = dx * dx + dy * dy + dz * dz
+    b = ox * dx + oy * dy + oz * dz
+    disc = b * b - a * (ox * ox + oy * oy + oz * oz - 1.0)
+    hit = disc > 0
+    root = np.sqrt(np.where(hit, disc, 0.0))
+    t1 = (root - b) / a
+    hit &= t1 > 0
+    return hit, np.maximum((-b - root) / a, 0.0), t1, e[:, 6]
 
 
 def _scan(scene: _Scene, settings: SimSettings, rng: np.random.Generator, pos: np.ndarray,
@@ -1254,7 +1257,8 @@ def _scan(scene: _Scene, settings: SimSettings, rng: np.random.Generator, pos: n
         cos = np.concatenate([cos, np.ones(len(out_rays))])
         cont = np.concatenate([cont, np.zeros(len(out_rays))])
 
-    order = np.lexsort((all_t, all_ray))
+    # One float key sorts by pulse, then range (ranges stay far below 4096 m).
+    order = np.argsort(all_ray * 4096.0 + np.clip(all_t, 0.0, 4095.0))
     all_ray, all_t, cls, refl, cos, cont = (a[order] for a in
                                             (all_ray, all_t, cls, refl, cos, cont))
     m = len(all_ray)

@@ -27,7 +27,7 @@ import array
 import dataclasses
 import sys
 from collections.abc import Iterable, Mapping
-from typing import Any, NamedTuple
+from typing import Any, Literal, NamedTuple, cast
 
 import numpy as np
 
@@ -51,7 +51,7 @@ _NUMPY_TO_DATATYPE: dict[tuple[str, int], int] = {
     (np.dtype(code).kind, np.dtype(code).itemsize): datatype
     for datatype, code in DATATYPE_TO_NUMPY.items()
 }
-_NATIVE = "<" if sys.byteorder == "little" else ">"
+_NATIVE: Literal["<", ">"] = "<" if sys.byteorder == "little" else ">"
 _XYZ = ("x", "y", "z")
 
 
@@ -65,7 +65,7 @@ class FieldSpec(NamedTuple):
     name: str
     offset: int
     datatype: int
-    count: int = 1
+    count: int = 1  # type: ignore[assignment]  # PointField's name; shadows tuple.count
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,6 +92,12 @@ class CloudLayout:
     def data_size(self) -> int:
         """Number of bytes ``data`` must hold (``row_step * height``)."""
         return self.row_step * self.height
+
+
+def _field(dtype: np.dtype, name: str) -> tuple[np.dtype, int]:
+    """(dtype, byte offset) of one field of a structured dtype."""
+    fields = cast(Mapping[str, tuple[Any, ...]], dtype.fields)
+    return fields[name][0], fields[name][1]
 
 
 def _as_count(value: Any, what: str) -> int:
@@ -187,8 +193,8 @@ def fields_from_dtype(dtype: np.dtype) -> list[FieldSpec]:
         raise CloudFormatError(f"points must be a structured array, got dtype {dtype}")
     specs = []
     for name in dtype.names:
-        field_dtype, offset = dtype.fields[name][:2]
-        base, shape = field_dtype, ()
+        field_dtype, offset = _field(dtype, name)
+        base, shape = field_dtype, cast(tuple[int, ...], ())
         if field_dtype.subdtype is not None:
             base, shape = field_dtype.subdtype
         if len(shape) > 1:
@@ -205,17 +211,18 @@ def fields_from_dtype(dtype: np.dtype) -> list[FieldSpec]:
     return specs
 
 
-def _byte_order(dtype: np.dtype) -> str | None:
+def _byte_order(dtype: np.dtype) -> Literal["<", ">"] | None:
     """'<' or '>' for the multi-byte fields of a structured dtype, None when it has none.
 
     Raises CloudFormatError when fields disagree (a PointCloud2 has one ``is_bigendian``).
     """
-    orders: dict[str, str] = {}
+    orders: dict[Literal["<", ">"], str] = {}
     for name in dtype.names or ():
-        field_dtype = dtype.fields[name][0]
+        field_dtype = _field(dtype, name)[0]
         base = field_dtype.subdtype[0] if field_dtype.subdtype is not None else field_dtype
         if base.itemsize > 1:
-            orders.setdefault(_NATIVE if base.byteorder in "=|" else base.byteorder, name)
+            order: Literal["<", ">"] = ">" if base.byteorder == ">" else "<"
+            orders.setdefault(_NATIVE if base.byteorder == "=" else order, name)
     if len(orders) > 1:
         raise CloudFormatError(
             f"fields mix byte orders ('{orders['<']}' little-endian, '{orders['>']}' "
@@ -228,7 +235,7 @@ def _check_xyz(dtype: np.dtype) -> None:
     for name in _XYZ:
         if dtype.names is None or name not in dtype.names:
             raise CloudFormatError(f"cloud has no '{name}' field (fields: {dtype.names})")
-        field_dtype = dtype.fields[name][0]
+        field_dtype = _field(dtype, name)[0]
         if field_dtype.kind != "f" or field_dtype.subdtype is not None:
             raise CloudFormatError(
                 f"field '{name}' must be a single FLOAT32 or FLOAT64, got {field_dtype}"
@@ -308,7 +315,7 @@ def read_points(
             f"{layout.height} = {layout.data_size}"
         )
     organized = layout.height > 1
-    points = np.ndarray(
+    points: np.ndarray = np.ndarray(
         shape=(layout.height, layout.width) if organized else (layout.width,),
         dtype=layout.dtype,
         buffer=buf,
@@ -381,7 +388,7 @@ def _byte_runs(
 ) -> list[tuple[int, int]]:
     """(offset, nbytes) of the maximal byte-contiguous runs covering the named fields."""
     spans = sorted(
-        (dtype.fields[n][1], dtype.fields[n][0].itemsize) for n in names
+        (_field(dtype, n)[1], _field(dtype, n)[0].itemsize) for n in names
     )
     runs: list[list[int]] = []
     for offset, size in spans:
@@ -415,7 +422,7 @@ def append_fields(
         raise CloudFormatError(f"fields already present: {clashes}")
     kept = sorted(
         (name for name in points.dtype.names if name not in new),
-        key=lambda n: points.dtype.fields[n][1],
+        key=lambda n: _field(points.dtype, n)[1],
     )
     order = _byte_order(points.dtype) or _NATIVE
 
@@ -424,7 +431,7 @@ def append_fields(
     offsets: list[int] = []
     offset = 0
     for name in kept:
-        field_dtype = points.dtype.fields[name][0]
+        field_dtype = _field(points.dtype, name)[0]
         names.append(name)
         formats.append(field_dtype)
         offsets.append(offset)
@@ -455,7 +462,7 @@ def append_fields(
     in_runs = _byte_runs(points.dtype, kept)
     if in_runs:
         # Kept fields are packed in offset order, so each input run stays contiguous.
-        starts = {points.dtype.fields[n][1]: out_dtype.fields[n][1] for n in kept}
+        starts = {_field(points.dtype, n)[1]: _field(out_dtype, n)[1] for n in kept}
         run_names = [f"run{i}" for i in range(len(in_runs))]
         run_formats = [np.dtype((np.void, size)) for _, size in in_runs]
         src = points.view(np.dtype({"names": run_names, "formats": run_formats,
@@ -534,16 +541,17 @@ def make_pointcloud2(
         is_dense=bool(dense),
     )
     if dataclasses.is_dataclass(msg_cls):  # rosbags: every argument required, data ndarray
-        data = raw.copy() if np.may_share_memory(raw, points) else raw
-        return msg_cls(data=data, **layout)
+        owned = raw.copy() if np.may_share_memory(raw, points) else raw
+        return cast(Any, msg_cls)(data=owned, **layout)
     msg = msg_cls(**layout)
     # rclpy's data setter copies whatever it is given into a new array.array; extending the
     # message's own (empty) array copies the bytes exactly once instead.
-    data = msg.data
-    if isinstance(data, array.array) and data.typecode == "B" and len(data) == 0:
+    data = getattr(msg, "data", None)
+    if isinstance(data, array.array) and data.typecode == "B" and not data:
         data.frombytes(raw)
-    if len(msg.data) != raw.size:  # a class that stores data otherwise or returns a copy
-        msg.data = raw.tobytes()
+        if len(msg.data) == raw.size:
+            return msg
+    msg.data = raw.tobytes()  # a class that stores data otherwise, or returns a copy
     return msg
 
 

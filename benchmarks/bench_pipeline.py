@@ -1,0 +1,181 @@
+"""End-to-end speed, latency and memory of the pipelines on simulated flights.
+
+- replay: a simulated 10 Hz flight with ~50k points per message through both nodes' stages
+  (`lidar-obstacles replay`), as a multiple of real time (target >= 5x).
+- live latency: the `obstacle_detector` executable as a subprocess; 50k-point clouds published
+  at 10 Hz; time from publishing a cloud to receiving its `obstacles` (target p95 <= 100 ms).
+- DEM update: `dem_builder`'s stage on the same clouds, per message (target p95 <= 50 ms).
+- memory: a long simulated flight through both stages in one process; resident memory after
+  the first 10 % of the flight vs at the end (target growth < 10 %). `--minutes 30` is the
+  issue's flight; the default is shorter so `make bench` stays reasonable.
+
+    python benchmarks/bench_pipeline.py [--quick] [--minutes M]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "benchmarks" / "results"
+
+
+def rss_mb() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def bench_replay(seconds: float) -> dict:
+    from lidar_obstacles.ros import offline
+
+    with tempfile.TemporaryDirectory() as tmp:
+        bag = Path(tmp) / "flight"
+        offline.simulate(bag, scene="mixed", seed=1, duration=seconds, frame="map")
+        out = offline.replay(bag, Path(tmp) / "out")
+    return {"flight_s": seconds, "messages": out["messages"],
+            "points_per_message": out["points"] / max(out["messages"], 1),
+            "wall_s": out["wall_seconds"], "real_time_factor": out["real_time_factor"],
+            "latency_p50_ms": out["latency_p50_ms"], "latency_p95_ms": out["latency_p95_ms"]}
+
+
+def bench_dem_updates(seconds: float) -> dict:
+    from lidar_obstacles.config import DemBuilderConfig, replace
+    from lidar_obstacles.core.pipeline import DemPipeline
+    from lidar_obstacles.core.simulate import SimSettings, simulate_flight
+
+    out = {}
+    frames = list(simulate_flight(SimSettings(scene="mixed", seed=2, duration=seconds)))
+    for method in ("tin", "idw"):
+        cfg = replace(DemBuilderConfig(), {"dem.interpolation": method})
+        pipe = DemPipeline(cfg)
+        times = []
+        for f in frames:
+            xyz = np.column_stack([f.points["x"], f.points["y"], f.points["z"]]).astype(float)
+            t0 = time.perf_counter()
+            pipe.process(xyz, stamp=f.stamp, vehicle_xyz=f.position,
+                         intensity=f.points["intensity"])
+            pipe.dem.snapshot()  # publishing needs the filled grid
+            times.append(time.perf_counter() - t0)
+        t = np.array(times[3:])  # the first messages warm caches up
+        out[method] = {"p50_ms": 1e3 * float(np.percentile(t, 50)),
+                       "p95_ms": 1e3 * float(np.percentile(t, 95))}
+    return out
+
+
+def bench_live_latency(seconds: float) -> dict:
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+
+    from lidar_obstacles.core.simulate import SimSettings, simulate_flight
+    from lidar_obstacles.ros import messages
+
+    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(120, 200)),
+               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    os.environ.update(env)
+    frames = list(simulate_flight(SimSettings(scene="mixed", seed=3, duration=seconds)))
+    exe = Path(sys.executable).parent / "obstacle_detector"
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m",
+                                           "lidar_obstacles.ros.obstacle_detector"]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    rclpy.init()
+    node = rclpy.create_node("latency_bench")
+    qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
+    pub = node.create_publisher(PointCloud2, "points", qos)
+    sent: dict[int, float] = {}
+    latencies: list[float] = []
+
+    def on_obstacles(msg: PointCloud2) -> None:
+        stamp = messages.stamp_ns_of(msg.header)
+        if stamp in sent:
+            latencies.append(time.perf_counter() - sent.pop(stamp))
+
+    node.create_subscription(PointCloud2, "obstacles", on_obstacles, qos)
+    try:
+        deadline = time.monotonic() + 60
+        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.1)
+        time.sleep(2.0)  # the node switches its subscription to reliable within 1 s
+        msgs = [messages.cloud(f.points, messages.header(int(f.stamp * 1e9) + 1, "map"))
+                for f in frames]
+        next_t = time.perf_counter()
+        for msg in msgs:
+            while time.perf_counter() < next_t:
+                rclpy.spin_once(node, timeout_sec=max(0.0, next_t - time.perf_counter()))
+            sent[messages.stamp_ns_of(msg.header)] = time.perf_counter()
+            pub.publish(msg)
+            next_t += 0.1
+        end = time.monotonic() + 5
+        while sent and time.monotonic() < end:
+            rclpy.spin_once(node, timeout_sec=0.05)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=20)
+    lat = np.array(latencies[5:]) if len(latencies) > 10 else np.array(latencies)
+    return {"published": len(frames), "received": len(latencies),
+            "p50_ms": 1e3 * float(np.percentile(lat, 50)) if lat.size else None,
+            "p95_ms": 1e3 * float(np.percentile(lat, 95)) if lat.size else None}
+
+
+def bench_memory(minutes: float) -> dict:
+    from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
+    from lidar_obstacles.core.pipeline import DemPipeline, ObstacleDetector
+    from lidar_obstacles.core.simulate import SimSettings, simulate_flight
+
+    det, dem = ObstacleDetector(ObstacleDetectorConfig()), DemPipeline(DemBuilderConfig())
+    settings = SimSettings(scene="mixed", seed=4, duration=minutes * 60)
+    n = int(minutes * 60 * settings.rate)
+    samples = []
+    from tqdm import tqdm
+
+    for i, f in enumerate(tqdm(simulate_flight(settings), total=n, desc="memory", disable=None)):
+        xyz = np.column_stack([f.points["x"], f.points["y"], f.points["z"]]).astype(float)
+        det.process(xyz, stamp=f.stamp, vehicle_xyz=f.position)
+        dem.process(xyz, stamp=f.stamp, vehicle_xyz=f.position, intensity=f.points["intensity"])
+        if i % 50 == 0:
+            dem.dem.snapshot()
+            samples.append((i, rss_mb()))
+    ref = next(m for i, m in samples if i >= n // 10)
+    return {"minutes": minutes, "messages": n, "rss_after_10pct_mb": round(ref, 1),
+            "rss_end_mb": round(samples[-1][1], 1), "rss_max_mb": round(max(m for _, m in samples), 1),
+            "growth": round(samples[-1][1] / ref - 1.0, 4)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="short flights")
+    ap.add_argument("--minutes", type=float, default=None, help="memory-test flight length")
+    args = ap.parse_args()
+    seconds = 10.0 if args.quick else 30.0
+    minutes = args.minutes if args.minutes is not None else (1.0 if args.quick else 5.0)
+    res = {"replay": bench_replay(seconds), "dem_update": bench_dem_updates(seconds / 2),
+           "live_latency": bench_live_latency(seconds / 2), "memory": bench_memory(minutes)}
+    targets = [
+        ("replay, x real time", res["replay"]["real_time_factor"], ">= 5"),
+        ("live obstacles latency p95, ms", res["live_latency"]["p95_ms"], "<= 100"),
+        ("DEM update p95 (tin), ms", res["dem_update"]["tin"]["p95_ms"], "<= 50"),
+        ("DEM update p95 (idw), ms", res["dem_update"]["idw"]["p95_ms"], "<= 50"),
+        (f"memory growth over {minutes:g} min", res["memory"]["growth"], "< 0.10"),
+    ]
+    print("| measure | value | target |\n|---|---|---|")
+    for name, value, target in targets:
+        shown = f"{value:.3g}" if isinstance(value, float) else str(value)
+        print(f"| {name} | {shown} | {target} |")
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "pipeline.json").write_text(json.dumps(res, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,406 @@
+"""The DEM: ground points -> a float32 elevation grid, offline or rolling with the vehicle.
+
+Grid conventions (grid_map's ideas): cell (row, col) covers
+x in [origin_x + col*res, origin_x + (col+1)*res), y in [origin_y + row*res, ...), so
+row index = y and row 0 is the SOUTH edge; the origin is a multiple of the resolution so
+grids of different messages and surveys line up. Layers: ``elevation`` float32 (NaN =
+unknown), ``interpolated`` uint8 (1 = filled by the interpolator, 0 = measured or
+unknown), ``count`` uint32 (ground points in the cell).
+
+A measured cell is the mean ground z of its points. Empty cells within
+``dem.fill_distance`` of a measured cell are interpolated from the measured cells (each
+at the mean x, y, z of its points, so sloping cells are not biased towards the centre).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import Delaunay, QhullError
+
+from lidar_obstacles.config import DemBuilderConfig, ThinningConfig
+from lidar_obstacles.core.interpolate import degeneracy, interpolate, merge_coincident
+from lidar_obstacles.core.kmeans import kmeans_ground
+from lidar_obstacles.errors import CloudFormatError, ConfigError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DemGrid:
+    """A frozen DEM.
+
+    elevation: (rows, cols) float32 metres, NaN where unknown. interpolated: (rows, cols)
+    uint8, 1 where filled by interpolation. count: (rows, cols) uint32 ground points per
+    cell. origin: (2,) float64 x, y of the lower-left corner of cell (0, 0), metres.
+    resolution: cell edge, metres. reason: why the DEM is empty or flat ("" otherwise).
+    """
+
+    elevation: np.ndarray
+    interpolated: np.ndarray
+    count: np.ndarray
+    origin: np.ndarray
+    resolution: float
+    reason: str = ""
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.elevation.shape  # type: ignore[return-value]
+
+    def cell_centres(self) -> np.ndarray:
+        """(rows, cols, 2) float64 x, y of every cell centre, metres."""
+        rows, cols = self.shape
+        xs = self.origin[0] + (np.arange(cols) + 0.5) * self.resolution
+        ys = self.origin[1] + (np.arange(rows) + 0.5) * self.resolution
+        gx, gy = np.meshgrid(xs, ys)
+        return np.stack([gx, gy], axis=-1)
+
+    def sample(self, xy: np.ndarray) -> np.ndarray:
+        """(M,) float64 bilinear elevation at xy (M, 2) metres between cell centres; NaN
+        outside the grid or next to an unknown cell."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        rows, cols = self.shape
+        f = (xy - self.origin) / self.resolution - 0.5
+        c0 = np.floor(f).astype(np.int64)
+        t = f - c0
+        out = np.full(len(xy), np.nan)
+        ok = (c0[:, 0] >= 0) & (c0[:, 0] < cols - 1) & (c0[:, 1] >= 0) & (c0[:, 1] < rows - 1)
+        if rows >= 2 and cols >= 2 and ok.any():
+            cx, cy, tx, ty = c0[ok, 0], c0[ok, 1], t[ok, 0], t[ok, 1]
+            e = self.elevation.astype(np.float64)
+            out[ok] = ((1 - tx) * (1 - ty) * e[cy, cx] + tx * (1 - ty) * e[cy, cx + 1]
+                       + (1 - tx) * ty * e[cy + 1, cx] + tx * ty * e[cy + 1, cx + 1])
+        return out
+
+
+def empty_grid(resolution: float, reason: str) -> DemGrid:
+    """A 0 x 0 DEM carrying the reason it is empty."""
+    return DemGrid(np.zeros((0, 0), np.float32), np.zeros((0, 0), np.uint8),
+                   np.zeros((0, 0), np.uint32), np.zeros(2), float(resolution), reason)
+
+
+def accuracy(predicted: np.ndarray, truth: np.ndarray) -> tuple[float, float, int]:
+    """(RMSE metres, R^2, n used) over the finite pairs of predicted and true elevations."""
+    p = np.asarray(predicted, dtype=np.float64)
+    t = np.asarray(truth, dtype=np.float64)
+    ok = np.isfinite(p) & np.isfinite(t)
+    if not ok.any():
+        return float("nan"), float("nan"), 0
+    err = p[ok] - t[ok]
+    var = float(np.sum((t[ok] - t[ok].mean()) ** 2))
+    r2 = 1.0 - float(np.sum(err ** 2)) / var if var > 0 else float("nan")
+    return float(np.sqrt(np.mean(err ** 2))), r2, int(ok.sum())
+
+
+# --------------------------------------------------------------------------- thinning
+
+
+@dataclass(frozen=True)
+class Thinning:
+    """Indices into the ground points: keep (K,) int64 kept for interpolation, check (C,)
+    int64 held out to measure the DEM (never in keep)."""
+
+    keep: np.ndarray
+    check: np.ndarray
+
+
+def tin_curvature(xyz: np.ndarray) -> np.ndarray:
+    """(N,) float64 |z - inverse-distance mean of the Delaunay neighbours' z| (m): a
+    discrete Laplacian, large where the terrain bends, 0 on any plane. Zeros when the
+    points cannot be triangulated."""
+    n = len(xyz)
+    if degeneracy(xyz[:, :2]):
+        return np.zeros(n)
+    try:
+        tri = Delaunay(xyz[:, :2])
+    except QhullError:
+        return np.zeros(n)
+    indptr, nbrs = tri.vertex_neighbor_vertices
+    owner = np.repeat(np.arange(n), np.diff(indptr))
+    w = 1.0 / np.maximum(np.hypot(*(xyz[owner, :2] - xyz[nbrs, :2]).T), 1e-9)
+    wsum = np.bincount(owner, weights=w, minlength=n)
+    pred = np.bincount(owner, weights=w * xyz[nbrs, 2], minlength=n)
+    out = np.zeros(n)
+    has = wsum > 0
+    out[has] = np.abs(xyz[has, 2] - pred[has] / wsum[has])
+    return out
+
+
+def thin(xyz: np.ndarray, *, cfg: ThinningConfig,
+         rng: np.random.Generator | int | None = None) -> Thinning:
+    """Hold out ``cfg.check_points`` random points, then keep ``cfg.keep`` of the rest.
+
+    ``random`` keeps a uniform random share; ``curvature`` draws without replacement with
+    weight 0.25 + curvature / mean curvature (see :func:`tin_curvature`), so bends, ditches
+    and breaklines keep more points while flat ground still keeps some (weighted sampling
+    by the Efraimidis-Spirakis keys log(u) / w, one vectorised pass).
+    """
+    gen = np.random.default_rng(cfg.seed if rng is None else rng)
+    n = len(xyz)
+    order = gen.permutation(n)
+    n_check = min(cfg.check_points, max(n - 3, 0))
+    check, rest = order[:n_check], order[n_check:]
+    n_keep = int(round(cfg.keep * len(rest)))
+    if cfg.method == "random" or n_keep >= len(rest):
+        keep = rest[:n_keep]
+    else:
+        curv = tin_curvature(xyz[rest])
+        mean = curv.mean()
+        weight = 0.25 + (curv / mean if mean > 0 else 0.0)
+        keys = np.log(gen.random(len(rest))) / weight
+        keep = rest[np.argpartition(-keys, n_keep - 1)[:n_keep]] if n_keep > 0 else rest[:0]
+    return Thinning(keep=np.sort(keep), check=np.sort(check))
+
+
+# --------------------------------------------------------------------------- ground source
+
+
+@dataclass(frozen=True)
+class DemGround:
+    """ground: (N,) bool points used for the DEM; source: `kmeans` or `detector`;
+    reason: a note on how it was found ("" when as configured)."""
+
+    ground: np.ndarray
+    source: str
+    reason: str = ""
+
+
+def select_ground(xyz: np.ndarray, *, cfg: DemBuilderConfig, intensity: np.ndarray | None = None,
+                  rng: np.random.Generator | int | None = None) -> DemGround:
+    """Ground points of a cloud by ``cfg.dem.ground_source``.
+
+    xyz: (N, 3) float64 metres. intensity: (N,) only when it is a real measurement (see
+    :func:`lidar_obstacles.core.kmeans.kmeans_ground`). ``detector`` calls
+    ``lidar_obstacles.core.ground.classify_ground`` (imported here, lazily, so the DEM
+    does not depend on the detector unless asked to).
+    """
+    if cfg.dem.ground_source == "detector":
+        from lidar_obstacles.core.ground import classify_ground
+
+        gen = np.random.default_rng(cfg.ransac.seed if rng is None else rng)
+        res = classify_ground(xyz, tiling=cfg.tiling, ground=cfg.ground, tin=cfg.tin,
+                              ransac=cfg.ransac, context_xyz=None, rng=gen)
+        return DemGround(np.asarray(res.ground, dtype=bool), "detector")
+    found = kmeans_ground(xyz, cfg=cfg.kmeans, intensity=intensity, rng=rng)
+    return DemGround(found.ground, "kmeans", found.reason)
+
+
+# --------------------------------------------------------------------------- grids
+
+
+class _Cells:
+    """Per-cell sums of a grid window: count, sum of z and of x, y offsets from the
+    cell centre, plus the interpolated layer. ``origin_ij`` is the global integer index
+    of cell (0, 0) (origin = origin_ij * resolution, so windows always line up)."""
+
+    def __init__(self, origin_ij: np.ndarray, shape: tuple[int, int], res: float):
+        self.origin_ij = np.asarray(origin_ij, dtype=np.int64)
+        self.shape = shape
+        self.res = res
+        self.count = np.zeros(shape, np.uint32)
+        self.sums = np.zeros((3,) + shape, np.float64)  # z, dx, dy
+        self.fill = np.full(shape, np.nan, np.float32)
+
+    def reframe(self, origin_ij: np.ndarray, shape: tuple[int, int]) -> None:
+        """Move/resize the window, keeping the cells both windows share."""
+        origin_ij = np.asarray(origin_ij, dtype=np.int64)
+        if np.array_equal(origin_ij, self.origin_ij) and shape == self.shape:
+            return
+        old = (self.count, self.sums, self.fill)
+        old_ij, old_shape = self.origin_ij, self.shape
+        self.__init__(origin_ij, shape, self.res)  # type: ignore[misc]
+        # overlap in global (col, row) indices
+        lo = np.maximum(old_ij, origin_ij)
+        hi = np.minimum(old_ij + np.array(old_shape[::-1]), origin_ij + np.array(shape[::-1]))
+        if np.any(hi <= lo):
+            return
+        src = (slice(lo[1] - old_ij[1], hi[1] - old_ij[1]), slice(lo[0] - old_ij[0], hi[0] - old_ij[0]))
+        dst = (slice(lo[1] - origin_ij[1], hi[1] - origin_ij[1]),
+               slice(lo[0] - origin_ij[0], hi[0] - origin_ij[0]))
+        self.count[dst] = old[0][src]
+        self.sums[(slice(None),) + dst] = old[1][(slice(None),) + src]
+        self.fill[dst] = old[2][src]
+
+    def add(self, xyz: np.ndarray) -> tuple[slice, slice] | None:
+        """Accumulate points; return the (rows, cols) bounding slices of touched cells."""
+        gij = np.floor(xyz[:, :2] / self.res).astype(np.int64)
+        local = gij - self.origin_ij
+        rows, cols = self.shape
+        ok = (local[:, 0] >= 0) & (local[:, 0] < cols) & (local[:, 1] >= 0) & (local[:, 1] < rows)
+        if not ok.any():
+            return None
+        local, pts = local[ok], xyz[ok]
+        flat = local[:, 1] * cols + local[:, 0]
+        cells, inv = np.unique(flat, return_inverse=True)
+        inv = inv.ravel()
+        centre = (gij[ok] + 0.5) * self.res
+        r, c = np.divmod(cells, cols)
+        self.count[r, c] += np.bincount(inv).astype(np.uint32)
+        for layer, values in enumerate((pts[:, 2], pts[:, 0] - centre[:, 0],
+                                        pts[:, 1] - centre[:, 1])):
+            self.sums[layer, r, c] += np.bincount(inv, weights=values)
+        return slice(int(r.min()), int(r.max()) + 1), slice(int(c.min()), int(c.max()) + 1)
+
+    def refill(self, region: tuple[slice, slice], *, cfg: DemBuilderConfig) -> None:
+        """Re-interpolate the empty cells of ``region`` lying within fill_distance of a
+        measured cell, from the measured cells up to 2 fill distances around the region."""
+        rows, cols = self.shape
+        reach = int(np.ceil(cfg.dem.fill_distance / self.res))
+        r0, r1 = max(region[0].start - reach, 0), min(region[0].stop + reach, rows)
+        c0, c1 = max(region[1].start - reach, 0), min(region[1].stop + reach, cols)
+        s0, s1 = max(r0 - reach, 0), min(r1 + reach, rows)
+        t0, t1 = max(c0 - reach, 0), min(c1 + reach, cols)
+        self.fill[r0:r1, c0:c1] = np.nan
+        count = self.count[s0:s1, t0:t1]
+        measured = count > 0
+        if not measured.any() or reach == 0:
+            return
+        inner = (slice(r0 - s0, r1 - s0), slice(c0 - t0, c1 - t0))
+        dist = ndimage.distance_transform_edt(~measured)[inner] * self.res
+        target = (dist > 0) & (dist <= cfg.dem.fill_distance)
+        if not target.any():
+            return
+        mr, mc = np.nonzero(measured)
+        n = count[mr, mc].astype(np.float64)
+        sums = self.sums[:, s0:s1, t0:t1][:, mr, mc] / n
+        sx = (self.origin_ij[0] + t0 + mc + 0.5) * self.res + sums[1]
+        sy = (self.origin_ij[1] + s0 + mr + 0.5) * self.res + sums[2]
+        tr, tc = np.nonzero(target)
+        qx = (self.origin_ij[0] + c0 + tc + 0.5) * self.res
+        qy = (self.origin_ij[1] + r0 + tr + 0.5) * self.res
+        values = interpolate(cfg.dem.interpolation, np.column_stack([sx, sy]), sums[0],
+                             np.column_stack([qx, qy]), kriging_cfg=cfg.kriging,
+                             rbf_cfg=cfg.rbf, rbfnn_cfg=cfg.rbfnn,
+                             idw_neighbours=cfg.dem.idw_neighbours, idw_power=cfg.dem.idw_power)
+        self.fill[r0 + tr, c0 + tc] = values.astype(np.float32)
+
+    def grid(self, reason: str = "") -> DemGrid:
+        measured = self.count > 0
+        mean = np.divide(self.sums[0], self.count, out=np.zeros(self.shape),
+                         where=measured).astype(np.float32)
+        elevation = np.where(measured, mean, self.fill).astype(np.float32)
+        interpolated = (~measured & np.isfinite(self.fill)).astype(np.uint8)
+        if not reason and not measured.any():
+            reason = "no ground points in the grid"
+        return DemGrid(elevation, interpolated, self.count.copy(),
+                       self.origin_ij.astype(np.float64) * self.res, self.res, reason)
+
+
+def _check_xyz(xyz: np.ndarray) -> np.ndarray:
+    arr = np.asarray(xyz, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise CloudFormatError(f"DEM: expected ground points (N, 3), got shape {arr.shape}")
+    return arr[np.all(np.isfinite(arr), axis=1)]
+
+
+def _flat_reason(xyz: np.ndarray) -> str:
+    if len(xyz) == 0:
+        return "no ground points"
+    reason = degeneracy(merge_coincident(xyz[:, :2], xyz[:, 2])[0])
+    if reason:
+        return reason + ": measured cells only, nothing interpolated"
+    if np.ptp(xyz[:, 2]) == 0:
+        return "all ground points at one height: a flat DEM"
+    return ""
+
+
+def build_dem(ground_xyz: np.ndarray, *, cfg: DemBuilderConfig) -> DemGrid:
+    """Whole-survey DEM of ground points (N, 3) float64 metres.
+
+    The grid covers the points' bounding box, origin aligned to multiples of
+    ``cfg.dem.resolution``. Raises ConfigError when it would exceed ``cfg.dem.max_cells``.
+    Degenerate input (no points, < 3 distinct, collinear) gives an empty or
+    measured-only DEM with ``reason`` set, never an exception from Qhull.
+    """
+    xyz = _check_xyz(ground_xyz)
+    res = cfg.dem.resolution
+    if len(xyz) == 0:
+        return empty_grid(res, "no ground points")
+    lo = np.floor(xyz[:, :2].min(axis=0) / res).astype(np.int64)
+    hi = np.floor(xyz[:, :2].max(axis=0) / res).astype(np.int64)
+    cols, rows = (hi - lo + 1).tolist()
+    if rows * cols > cfg.dem.max_cells:
+        raise ConfigError(f"DEM of {rows} x {cols} cells exceeds dem.max_cells = "
+                          f"{cfg.dem.max_cells}; raise it or coarsen dem.resolution")
+    cells = _Cells(lo, (rows, cols), res)
+    cells.add(xyz)
+    reason = _flat_reason(xyz)
+    if not reason.endswith("nothing interpolated"):
+        cells.refill((slice(0, rows), slice(0, cols)), cfg=cfg)
+    return cells.grid(reason)
+
+
+class RollingDem:
+    """DEM accumulated across messages, bounded in memory.
+
+    ``dem.extent`` > 0: a square window of that size follows the vehicle (or the centre
+    of the latest ground when no vehicle position is given); cells leaving it are
+    forgotten. ``dem.extent`` = 0: the grid grows to cover the whole flight, at most
+    ``dem.max_cells`` cells (beyond that it becomes a window of that many cells around
+    the latest data). Each update adds the points to their cells' sums (measured cells
+    become the mean of all ground seen there) and re-interpolates the empty cells near
+    the new data.
+    """
+
+    def __init__(self, cfg: DemBuilderConfig):
+        self.cfg = cfg
+        self._res = cfg.dem.resolution
+        side = max(int(np.floor(np.sqrt(cfg.dem.max_cells))), 1)
+        if cfg.dem.extent > 0:
+            side = min(side, max(int(np.ceil(cfg.dem.extent / self._res)), 1))
+        self._side = side  # window edge in cells
+        self._cells: _Cells | None = None
+        self.stamp: float | None = None
+
+    def _frame(self, xyz: np.ndarray, vehicle_xy: np.ndarray | None) -> None:
+        res = self._res
+        if self.cfg.dem.extent > 0 or self._cells is None and False:
+            centre = (np.asarray(vehicle_xy, dtype=np.float64) if vehicle_xy is not None
+                      else xyz[:, :2].mean(axis=0))
+            origin = np.floor(centre / res).astype(np.int64) - self._side // 2
+            shape = (self._side, self._side)
+        else:
+            lo = np.floor(xyz[:, :2].min(axis=0) / res).astype(np.int64)
+            hi = np.floor(xyz[:, :2].max(axis=0) / res).astype(np.int64) + 1
+            if self._cells is not None:
+                lo = np.minimum(lo, self._cells.origin_ij)
+                hi = np.maximum(hi, self._cells.origin_ij + np.array(self._cells.shape[::-1]))
+                if np.all(lo == self._cells.origin_ij) and np.all(
+                        hi == self._cells.origin_ij + np.array(self._cells.shape[::-1])):
+                    return
+            # grow in steps of 64 cells so a growing flight does not copy every message
+            size = -(-(hi - lo) // 64) * 64
+            if size[0] * size[1] > self.cfg.dem.max_cells:
+                centre = (np.asarray(vehicle_xy, dtype=np.float64) if vehicle_xy is not None
+                          else xyz[:, :2].mean(axis=0))
+                origin = np.floor(centre / res).astype(np.int64) - self._side // 2
+                shape = (self._side, self._side)
+            else:
+                origin, shape = lo, (int(size[1]), int(size[0]))
+        if self._cells is None:
+            self._cells = _Cells(origin, shape, res)
+        else:
+            self._cells.reframe(origin, shape)
+
+    def update(self, ground_xyz: np.ndarray, vehicle_xy: np.ndarray | None = None,
+               stamp: float | None = None) -> None:
+        """Add ground points (N, 3) float64 metres; vehicle_xy (2,) metres or None;
+        stamp: the message time in seconds (kept as ``self.stamp``)."""
+        xyz = _check_xyz(ground_xyz)
+        if stamp is not None:
+            self.stamp = float(stamp)
+        if len(xyz) == 0:
+            return
+        self._frame(xyz, vehicle_xy)
+        assert self._cells is not None
+        region = self._cells.add(xyz)
+        if region is not None:
+            self._cells.refill(region, cfg=self.cfg)
+
+    def snapshot(self) -> DemGrid:
+        """The current DEM (a frozen copy)."""
+        if self._cells is None:
+            return empty_grid(self._res, "no ground received yet")
+        return self._cells.grid()
