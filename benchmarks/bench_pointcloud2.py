@@ -157,6 +157,7 @@ def main() -> None:
         counted=False)
     add("array->msg", "rclpy", "  naive: msg.data = arr.tobytes()", rclpy_assign_bytes,
         counted=False)
+
     def rclpy_frombytes():
         msg = PointCloud2()
         msg.data.frombytes(packed.view(np.uint8))

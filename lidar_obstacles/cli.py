@@ -76,6 +76,35 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--topic", default=None)
     s.add_argument("--params-file", type=Path, default=None)
     s.add_argument("--crs", default=None, help="e.g. EPSG:32632 (default: from the bag)")
+    s = sub.add_parser("evaluate", help="compare the classes with the `classification` field")
+    s.add_argument("src", type=Path, metavar="IN",
+                   help="a replay's output bag, a labelled bag or a LAS/LAZ file "
+                        "(with --benchmark isprs: the folder of the 15 samples)")
+    s.add_argument("--params-file", type=Path, default=None,
+                   help="parameters of the pipeline run on a labelled input")
+    s.add_argument("--report", type=Path, default=None, metavar="DIR",
+                   help="write report.html, metrics.json and PNGs here")
+    s.add_argument("--blocks", default="6x6", help="grid of the per-block kappa, e.g. 6x6")
+    s.add_argument("--topic", default=None)
+    s.add_argument("--no-dem", action="store_true", help="skip the DEM comparison")
+    s.add_argument("--benchmark", choices=("isprs",), default=None,
+                   help="run all ISPRS samples in IN with one parameter set")
+
+    s = sub.add_parser("tune", help="search parameters on labelled inputs; write a params YAML")
+    s.add_argument("src", type=Path, nargs="+", metavar="IN",
+                   help="labelled bags or LAS/LAZ files used for the search")
+    s.add_argument("--validate", type=Path, nargs="+", default=None, metavar="FILE",
+                   help="held-out inputs scored with the result (default: none, or the last "
+                        "input when several are given)")
+    s.add_argument("--out", type=Path, default=Path("tuned.yaml"), help="params YAML to write")
+    s.add_argument("--budget", default="10m", help="time budget, e.g. 90s, 10m, 1h")
+    s.add_argument("--trials", type=int, default=200, help="candidates at most")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--space", type=Path, default=None,
+                   help="YAML narrowing the search: {name: [min, max] | [choice, ...]}")
+    s.add_argument("--start", type=Path, default=None, help="params file of the first candidate")
+    s.add_argument("--objective", choices=("ground_kappa", "kappa", "total_error"),
+                   default="ground_kappa")
     return p
 
 
@@ -100,6 +129,23 @@ def run(args: argparse.Namespace) -> dict:
     if args.command == "export-dem":
         return offline.export_dem(args.src, args.out, topic=args.topic,
                                   params_file=args.params_file, crs=args.crs)
+    if args.command == "evaluate":
+        from lidar_obstacles import evaluate
+
+        if args.benchmark == "isprs":
+            result = evaluate.benchmark_isprs(args.src, params_file=args.params_file)
+            print(evaluate.isprs_table(result), file=sys.stderr)
+            return result
+        return evaluate.evaluate(args.src, params_file=args.params_file,
+                                 report_dir=args.report, blocks=args.blocks, topic=args.topic,
+                                 with_dem=not args.no_dem)
+    if args.command == "tune":
+        from lidar_obstacles import tune
+
+        return tune.tune(args.src, validate=args.validate, out=args.out,
+                         budget_s=tune.parse_budget(args.budget), max_trials=args.trials,
+                         seed=args.seed, space_file=args.space, start_file=args.start,
+                         objective=args.objective)
     if args.command == "demo":
         from lidar_obstacles.demo import run_demo
 

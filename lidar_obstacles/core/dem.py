@@ -354,35 +354,38 @@ class RollingDem:
         self._cells: _Cells | None = None
         self.stamp: float | None = None
 
-    def _frame(self, xyz: np.ndarray, vehicle_xy: np.ndarray | None) -> None:
+    def _window(self, xyz: np.ndarray, vehicle_xy: np.ndarray | None
+                ) -> tuple[np.ndarray, tuple[int, int]]:
+        centre = (np.asarray(vehicle_xy, dtype=np.float64).reshape(2) if vehicle_xy is not None
+                  else xyz[:, :2].mean(axis=0))
+        origin = np.floor(centre / self._res).astype(np.int64) - self._side // 2
+        return origin, (self._side, self._side)
+
+    def _frame(self, xyz: np.ndarray, vehicle_xy: np.ndarray | None) -> _Cells:
+        """Place the window for this message; return the cells."""
         res = self._res
-        if self.cfg.dem.extent > 0 or self._cells is None and False:
-            centre = (np.asarray(vehicle_xy, dtype=np.float64) if vehicle_xy is not None
-                      else xyz[:, :2].mean(axis=0))
-            origin = np.floor(centre / res).astype(np.int64) - self._side // 2
-            shape = (self._side, self._side)
+        if self.cfg.dem.extent > 0:
+            origin, shape = self._window(xyz, vehicle_xy)
         else:
             lo = np.floor(xyz[:, :2].min(axis=0) / res).astype(np.int64)
             hi = np.floor(xyz[:, :2].max(axis=0) / res).astype(np.int64) + 1
             if self._cells is not None:
-                lo = np.minimum(lo, self._cells.origin_ij)
-                hi = np.maximum(hi, self._cells.origin_ij + np.array(self._cells.shape[::-1]))
-                if np.all(lo == self._cells.origin_ij) and np.all(
-                        hi == self._cells.origin_ij + np.array(self._cells.shape[::-1])):
-                    return
+                old_lo = self._cells.origin_ij
+                old_hi = old_lo + np.array(self._cells.shape[::-1])
+                if np.all(lo >= old_lo) and np.all(hi <= old_hi):
+                    return self._cells
+                lo, hi = np.minimum(lo, old_lo), np.maximum(hi, old_hi)
             # grow in steps of 64 cells so a growing flight does not copy every message
             size = -(-(hi - lo) // 64) * 64
             if size[0] * size[1] > self.cfg.dem.max_cells:
-                centre = (np.asarray(vehicle_xy, dtype=np.float64) if vehicle_xy is not None
-                          else xyz[:, :2].mean(axis=0))
-                origin = np.floor(centre / res).astype(np.int64) - self._side // 2
-                shape = (self._side, self._side)
+                origin, shape = self._window(xyz, vehicle_xy)
             else:
                 origin, shape = lo, (int(size[1]), int(size[0]))
         if self._cells is None:
             self._cells = _Cells(origin, shape, res)
         else:
             self._cells.reframe(origin, shape)
+        return self._cells
 
     def update(self, ground_xyz: np.ndarray, vehicle_xy: np.ndarray | None = None,
                stamp: float | None = None) -> None:
@@ -393,11 +396,10 @@ class RollingDem:
             self.stamp = float(stamp)
         if len(xyz) == 0:
             return
-        self._frame(xyz, vehicle_xy)
-        assert self._cells is not None
-        region = self._cells.add(xyz)
+        cells = self._frame(xyz, vehicle_xy)
+        region = cells.add(xyz)
         if region is not None:
-            self._cells.refill(region, cfg=self.cfg)
+            cells.refill(region, cfg=self.cfg)
 
     def snapshot(self) -> DemGrid:
         """The current DEM (a frozen copy)."""

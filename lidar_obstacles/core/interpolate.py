@@ -26,7 +26,7 @@ from typing import Callable
 import numpy as np
 from scipy.linalg import solve_triangular
 from scipy.optimize import least_squares
-from scipy.spatial import Delaunay, QhullError, cKDTree
+from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from lidar_obstacles.config import KrigingConfig, RbfConfig, RbfnnConfig
 from lidar_obstacles.errors import CloudFormatError
@@ -98,7 +98,17 @@ def tin(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray) -> np.ndarray:
         tri = Delaunay(xy)
     except QhullError:  # nearly collinear sets that passed the SVD test
         return out
-    simplex = tri.find_simplex(query_xy)
+    # Qhull's point location walks the triangulation and falls back to a brute-force
+    # search over every triangle when the walk leaves the hull, so queries outside the
+    # hull cost O(triangles) each (seconds for a DEM); they are screened out first.
+    eq = ConvexHull(xy).equations
+    tol = 1e-9 * float(np.abs(xy).max() + 1.0)
+    candidate = np.ones(len(query_xy), dtype=bool)
+    for lo in range(0, len(query_xy), _CHUNK):
+        sl = slice(lo, lo + _CHUNK)
+        candidate[sl] = np.all(query_xy[sl] @ eq[:, :2].T + eq[:, 2] <= tol, axis=1)
+    simplex = np.full(len(query_xy), -1)
+    simplex[candidate] = tri.find_simplex(query_xy[candidate])
     inside = simplex >= 0
     s = simplex[inside]
     trans = tri.transform[s]

@@ -20,6 +20,7 @@ from lidar_obstacles.errors import BagError
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 ODOMETRY = "nav_msgs/msg/Odometry"
+CRS_TOPIC = "/survey_crs"  # std_msgs/String, "EPSG:nnnn" or WKT, written by las2bag
 
 
 def typestore():
@@ -228,3 +229,12 @@ def _offered_qos(transient_local: bool) -> list:
         durability=QosDurability.TRANSIENT_LOCAL if transient_local else QosDurability.VOLATILE,
         deadline=infinite, lifespan=infinite, liveliness=QosLiveliness.AUTOMATIC,
         liveliness_lease_duration=infinite, avoid_ros_namespace_conventions=False)]
+
+
+def read_crs(reader: BagReader) -> str:
+    """The survey CRS that las2bag recorded on CRS_TOPIC, or "" when the bag has none."""
+    if not any(t.topic == CRS_TOPIC for t in reader.topics()):
+        return ""
+    for record in reader.records([CRS_TOPIC]):
+        return str(reader.deserialize(record).data)
+    return ""

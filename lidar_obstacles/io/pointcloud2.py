@@ -123,14 +123,18 @@ def dtype_from_fields(fields: Iterable[Any], point_step: int, is_bigendian: bool
     outside ``point_step``, overlapping fields or a duplicate or empty name.
     """
     point_step = _as_count(point_step, "point_step")
-    order = ">" if is_bigendian else "<"
+    return _point_dtype(_validated_specs(fields, point_step), point_step, is_bigendian)
+
+
+def _validated_specs(fields: Iterable[Any], point_step: int) -> list[FieldSpec]:
+    """PointField-like objects as FieldSpecs, checked against each other and point_step."""
     specs: list[FieldSpec] = []
     for field in fields:
         name = getattr(field, "name", None)
         if not isinstance(name, str) or not name:
             raise CloudFormatError(f"field has no usable name: {name!r}")
         datatype = getattr(field, "datatype", None)
-        if datatype not in DATATYPE_TO_NUMPY:
+        if not isinstance(datatype, (int, np.integer)) or datatype not in DATATYPE_TO_NUMPY:
             raise CloudFormatError(f"field '{name}' has unknown datatype {datatype!r}")
         count = getattr(field, "count", None)
         if not isinstance(count, (int, np.integer)) or isinstance(count, bool) or count < 1:
@@ -157,7 +161,12 @@ def dtype_from_fields(fields: Iterable[Any], point_step: int, is_bigendian: bool
                 f"fields '{before.name}' (bytes {before.offset}..{before_end - 1}) and "
                 f"'{after.name}' (from byte {after.offset}) overlap"
             )
+    return specs
 
+
+def _point_dtype(specs: list[FieldSpec], point_step: int, is_bigendian: bool) -> np.dtype:
+    """The structured dtype of validated FieldSpecs."""
+    order = ">" if is_bigendian else "<"
     formats: list[Any] = []
     for spec in specs:
         code = DATATYPE_TO_NUMPY[spec.datatype]
@@ -207,8 +216,7 @@ def fields_from_dtype(dtype: np.dtype) -> list[FieldSpec]:
             raise CloudFormatError(f"field '{name}' has bad count {count}")
         specs.append(FieldSpec(name, int(offset), datatype, count))
     # NumPy accepts overlapping explicit offsets; a PointCloud2 cannot express them.
-    dtype_from_fields(specs, dtype.itemsize, False)
-    return specs
+    return _validated_specs(specs, dtype.itemsize)
 
 
 def _byte_order(dtype: np.dtype) -> Literal["<", ">"] | None:
@@ -253,22 +261,20 @@ def cloud_layout(msg: Any) -> CloudLayout:
     point_step = _as_count(msg.point_step, "point_step")
     row_step = _as_count(msg.row_step, "row_step")
     is_bigendian = bool(msg.is_bigendian)
-    dtype = dtype_from_fields(msg.fields, point_step, is_bigendian)
+    specs = _validated_specs(msg.fields, point_step)
+    dtype = _point_dtype(specs, point_step, is_bigendian)
     _check_xyz(dtype)
     if width * height and row_step < width * point_step:
         raise CloudFormatError(
             f"row_step {row_step} < width {width} * point_step {point_step}"
         )
-    fields = tuple(
-        FieldSpec(f.name, int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields
-    )
-    return CloudLayout(height, width, point_step, row_step, is_bigendian, fields, dtype)
+    return CloudLayout(height, width, point_step, row_step, is_bigendian, tuple(specs), dtype)
 
 
 def _byte_view(data: Any) -> np.ndarray:
     """``msg.data`` as a 1-D uint8 array without copying when it exposes a buffer."""
     if isinstance(data, np.ndarray):
-        if data.dtype.itemsize != 1 or data.dtype.kind not in "uib":
+        if data.dtype.itemsize != 1 or data.dtype.kind not in "ui":
             raise CloudFormatError(f"data must hold bytes, got an array of {data.dtype}")
         return np.ascontiguousarray(data.reshape(-1)).view(np.uint8)
     try:
@@ -379,17 +385,13 @@ def to_native(points: np.ndarray) -> np.ndarray:
     if native == points.dtype:
         return points
     out = np.zeros(points.shape, dtype=native)
-    out[...] = points  # assignment between structured dtypes of equal layout is by field
+    out[...] = points  # structured assignment goes by position; names and order match
     return out
 
 
-def _byte_runs(
-    dtype: np.dtype, names: Iterable[str]
-) -> list[tuple[int, int]]:
+def _byte_runs(dtype: np.dtype, names: Iterable[str]) -> list[tuple[int, int]]:
     """(offset, nbytes) of the maximal byte-contiguous runs covering the named fields."""
-    spans = sorted(
-        (_field(dtype, n)[1], _field(dtype, n)[0].itemsize) for n in names
-    )
+    spans = sorted((_field(dtype, n)[1], _field(dtype, n)[0].itemsize) for n in names)
     runs: list[list[int]] = []
     for offset, size in spans:
         if runs and runs[-1][0] + runs[-1][1] == offset:
@@ -548,7 +550,7 @@ def make_pointcloud2(
     # message's own (empty) array copies the bytes exactly once instead.
     data = getattr(msg, "data", None)
     if isinstance(data, array.array) and data.typecode == "B" and not data:
-        data.frombytes(raw)
+        data.frombytes(raw.data)
         if len(msg.data) == raw.size:
             return msg
     msg.data = raw.tobytes()  # a class that stores data otherwise, or returns a copy

@@ -18,11 +18,10 @@ import numpy as np
 
 from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
 from lidar_obstacles.errors import BagError, CloudFormatError, LasError
-from lidar_obstacles.io.bags import ODOMETRY, POINTCLOUD2, BagReader, BagWriter
+from lidar_obstacles.io.bags import CRS_TOPIC, ODOMETRY, POINTCLOUD2, BagReader, BagWriter, read_crs
 from lidar_obstacles.ros import messages
 from lidar_obstacles.ros.stages import DemStage, DetectorStage, Pose, pose_of_odometry
 
-CRS_TOPIC = "/survey_crs"  # std_msgs/String: "EPSG:nnnn" or WKT, written by las2bag
 STRING = "std_msgs/msg/String"
 
 # Topics `replay` writes and their types (the nodes' outputs, root namespace).
@@ -314,15 +313,6 @@ def cdr_of_record(reader: BagReader, record) -> bytes | None:
 
 
 # --------------------------------------------------------------------------- export-dem
-
-
-def read_crs(reader: BagReader) -> str:
-    """The CRS recorded by las2bag in the bag, or ""."""
-    if not any(t.topic == CRS_TOPIC for t in reader.topics()):
-        return ""
-    for record in reader.records([CRS_TOPIC]):
-        return str(reader.deserialize(record).data)
-    return ""
 
 
 def export_dem(src: Path, out: Path, *, topic: str | None = None,

@@ -1,0 +1,291 @@
+"""`lidar-obstacles evaluate` and the labelled inputs `tune` shares with it.
+
+A labelled input is a LAS/LAZ file (the whole file is one cloud, tiled inside), a bag whose
+clouds carry `classification` (the pipeline runs first), or a replay's output bag (its
+`/ground` and `/obstacles` carry both `classification` and the predicted `class`).
+No ROS install is needed: bags are decoded with rosbags.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
+from lidar_obstacles.errors import BagError, CloudFormatError
+
+LAS_SUFFIXES = (".las", ".laz")
+ISPRS_SAMPLES = ("11", "12", "21", "22", "23", "24", "31", "41", "42", "51", "52", "53", "54",
+                 "61", "71")
+# Published total errors (%) beside which `--benchmark isprs` prints ours (data README).
+PUBLISHED_TOTAL_ERROR = {"Axelsson PTD (2000)": 4.82, "CSF (2016)": 4.39,
+                         "SMRF tuned per sample (2013)": 2.97, "Mongus (2014)": 2.74,
+                         "PDAL 2.8 SMRF defaults (measured)": 5.14}
+
+
+@dataclass
+class LabelledCloud:
+    """One cloud of a labelled input. xyz: (N, 3) float64 m; reference: (N,) uint8 ASPRS;
+    predicted: (N,) uint8 or None when the pipeline has not run; attrs: optional per-point
+    fields (intensity, return_number, number_of_returns)."""
+
+    stamp: float
+    xyz: np.ndarray
+    reference: np.ndarray
+    predicted: np.ndarray | None = None
+    attrs: dict[str, np.ndarray] = field(default_factory=dict)
+    vehicle: np.ndarray | None = None
+
+
+@dataclass
+class LabelledInput:
+    name: str
+    kind: str  # "las", "labelled_bag" or "replay_bag"
+    clouds: list[LabelledCloud]
+    crs: str = ""
+
+    @property
+    def n_points(self) -> int:
+        return sum(len(c.xyz) for c in self.clouds)
+
+
+_ATTRS = ("intensity", "return_number", "number_of_returns")
+
+
+def _from_points(points: np.ndarray, stamp: float) -> LabelledCloud:
+    from lidar_obstacles.io.pointcloud2 import xyz_of
+
+    names = points.dtype.names or ()
+    if "classification" not in names:
+        raise CloudFormatError("clouds have no 'classification' field to evaluate against")
+    pred = np.asarray(points["class"], np.uint8) if "class" in names else None
+    attrs = {a: np.asarray(points[a]) for a in _ATTRS if a in names}
+    return LabelledCloud(stamp, xyz_of(points), np.asarray(points["classification"], np.uint8),
+                         pred, attrs)
+
+
+def load_input(path: str | Path, *, topic: str | None = None) -> LabelledInput:
+    """Read a labelled LAS/LAZ file or bag. LasError/BagError/CloudFormatError when unusable."""
+    path = Path(path)
+    if path.suffix.lower() in LAS_SUFFIXES:
+        from lidar_obstacles.io.las import read_las
+
+        las = read_las(path)
+        crs = f"EPSG:{las.epsg}" if las.epsg else las.crs_wkt
+        return LabelledInput(path.name, "las", [_from_points(las.points, 0.0)], crs)
+    from lidar_obstacles.io.bags import BagReader, read_crs
+    from lidar_obstacles.io.pointcloud2 import read_points
+
+    with BagReader(path) as reader:
+        topics = {t.topic: t for t in reader.topics()}
+        if "/ground" in topics and "/obstacles" in topics and topic is None:
+            by_stamp: dict[int, list[np.ndarray]] = {}
+            for rec in reader.records(["/ground", "/obstacles"]):
+                msg = reader.deserialize(rec)
+                stamp = int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
+                by_stamp.setdefault(stamp, []).append(np.asarray(read_points(msg)))
+            clouds = [_from_points(np.concatenate(parts), s * 1e-9)
+                      for s, parts in sorted(by_stamp.items())]
+            if clouds and clouds[0].predicted is None:
+                raise CloudFormatError(f"{path}: /obstacles has no 'class' field")
+            kind = "replay_bag"
+        else:
+            cloud_topic = reader.pointcloud_topic(topic)
+            clouds = []
+            for rec in reader.records([cloud_topic]):
+                msg = reader.deserialize(rec)
+                stamp = int(msg.header.stamp.sec) + int(msg.header.stamp.nanosec) * 1e-9
+                cloud = _from_points(np.asarray(read_points(msg)), stamp)
+                cloud.predicted = None  # a labelled input bag: the pipeline runs on it
+                clouds.append(cloud)
+            kind = "labelled_bag"
+        crs = read_crs(reader)
+    if not clouds:
+        raise BagError(f"bag {path} has no clouds")
+    return LabelledInput(path.name, kind, clouds, crs)
+
+
+def run_detector(inp: LabelledInput, cfg: ObstacleDetectorConfig, *,
+                 progress: bool = False) -> list[float]:
+    """Run the obstacle detector over every cloud of `inp` in order (one pipeline object, so
+    the ground context streams as in the node); fills `predicted`. Returns seconds per cloud."""
+    from lidar_obstacles.core.pipeline import ObstacleDetector
+
+    det = ObstacleDetector(cfg)
+    latencies = []
+    clouds = inp.clouds
+    if progress:
+        import sys
+
+        from tqdm import tqdm
+
+        clouds = tqdm(clouds, desc=f"detect {inp.name}", disable=None, file=sys.stderr)
+    for c in clouds:
+        t0 = time.perf_counter()
+        res = det.process(c.xyz, stamp=c.stamp, vehicle_xyz=c.vehicle,
+                          **{k: v for k, v in c.attrs.items()})
+        latencies.append(time.perf_counter() - t0)
+        c.predicted = res.classes
+    return latencies
+
+
+def _concat(inp: LabelledInput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    xyz = np.concatenate([c.xyz for c in inp.clouds])
+    ref = np.concatenate([c.reference for c in inp.clouds])
+    pred = np.concatenate([c.predicted for c in inp.clouds])  # type: ignore[misc]
+    return xyz, ref, pred
+
+
+def dem_comparison(xyz: np.ndarray, reference: np.ndarray, predicted: np.ndarray, *,
+                   cfg: DemBuilderConfig | None = None, check_points: int = 100,
+                   seed: int = 0) -> dict:
+    """DEM from the predicted ground vs DEM from the reference ground, same grid, same
+    interpolator; plus errors at `check_points` reference ground points held out of both.
+
+    Returns {"grid": grid_errors, "check_points": grid_errors, "reference_dem": DemGrid,
+    "predicted_dem": DemGrid} (the grids for pictures; not JSON)."""
+    from lidar_obstacles.core.dem import build_dem
+    from lidar_obstacles.core.metrics import GROUND_CODES, grid_errors, grid_values_at
+
+    cfg = cfg or DemBuilderConfig()
+    ref_ground = np.isin(reference, GROUND_CODES)
+    pred_ground = predicted == 2
+    rng = np.random.default_rng(seed)
+    idx = np.flatnonzero(ref_ground)
+    held = rng.choice(idx, size=min(check_points, len(idx) // 10), replace=False) \
+        if len(idx) >= 30 else np.zeros(0, int)
+    keep = np.ones(len(xyz), bool)
+    keep[held] = False
+    lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+    ref_dem = build_dem(xyz[ref_ground & keep], cfg=cfg, bounds=(lo, hi))
+    pred_dem = build_dem(xyz[pred_ground & keep], cfg=cfg, bounds=(lo, hi))
+    out: dict[str, Any] = {"grid": grid_errors(ref_dem.elevation, pred_dem.elevation),
+                           "reference_dem": ref_dem, "predicted_dem": pred_dem}
+    if len(held):
+        est = grid_values_at(pred_dem.elevation, pred_dem.resolution, tuple(pred_dem.origin),
+                             xyz[held, :2])
+        out["check_points"] = grid_errors(xyz[held, 2], est)
+    return out
+
+
+def evaluate(src: str | Path, *, params_file: str | Path | None = None,
+             report_dir: str | Path | None = None, blocks: str = "6x6",
+             topic: str | None = None, with_dem: bool = True) -> dict:
+    """All the figures of `lidar-obstacles evaluate` for one input (JSON-ready dict)."""
+    from lidar_obstacles.core.metrics import evaluate_classes, jsonable, latency_stats
+
+    det_cfg, dem_cfg = _configs(params_file)
+    inp = load_input(src, topic=topic)
+    latencies: list[float] = []
+    if inp.kind != "replay_bag":
+        latencies = run_detector(inp, det_cfg, progress=True)
+    xyz, ref, pred = _concat(inp)
+    metrics: dict[str, Any] = {"source": str(src), "kind": inp.kind,
+                               "clouds": len(inp.clouds)}
+    metrics.update(evaluate_classes(ref, pred, xy=xyz[:, :2], blocks=blocks))
+    dem = None
+    if with_dem:
+        dem = dem_comparison(xyz, ref, pred, cfg=dem_cfg)
+        metrics["dem"] = {"grid": dem["grid"], "check_points": dem.get("check_points")}
+    if latencies:
+        metrics["latency"] = latency_stats(latencies)
+    metrics = jsonable(metrics)
+    if report_dir is not None:
+        metrics["report"] = str(write_evaluation_report(Path(report_dir), metrics, xyz, ref,
+                                                        pred, dem, latencies, inp.name))
+    return metrics
+
+
+def _configs(params_file) -> tuple[ObstacleDetectorConfig, DemBuilderConfig]:
+    from lidar_obstacles.config import load_params_file
+
+    if params_file is None:
+        return ObstacleDetectorConfig(), DemBuilderConfig()
+    return (load_params_file(params_file, ObstacleDetectorConfig, "obstacle_detector"),
+            load_params_file(params_file, DemBuilderConfig, "dem_builder"))
+
+
+def write_evaluation_report(out: Path, metrics: dict, xyz, ref, pred, dem, latencies,
+                            name: str) -> Path:
+    """PNGs, metrics.json and a self-contained report.html in `out`."""
+    from lidar_obstacles import report
+
+    out.mkdir(parents=True, exist_ok=True)
+    images: dict[str, Path] = {}
+    images["confusion matrix"] = report.confusion_png(
+        metrics["confusion"]["matrix"], metrics["confusion"]["labels"], out / "confusion.png")
+    if metrics.get("blocks"):
+        b = metrics["blocks"]
+        grid = np.array([[np.nan if v is None else v for v in row] for row in b["kappa"]])
+        images["kappa per block"] = report.block_kappa_png(grid, tuple(b["extent"]),
+                                                           out / "block_kappa.png", xy=xyz[:, :2])
+    images["classes (predicted)"] = report.cloud_views_png(xyz, pred, out / "classes.png",
+                                                           title=f"{name}: predicted classes")
+    images["classes (reference)"] = report.cloud_views_png(xyz, ref, out / "reference.png",
+                                                           title=f"{name}: reference classes")
+    images["errors"] = report.error_views_png(xyz, ref, pred, out / "errors.png",
+                                              title=f"{name}: ground/object errors")
+    if dem is not None:
+        p = dem["predicted_dem"]
+        if np.isfinite(p.elevation).any():
+            images["DEM hillshade"] = report.hillshade_png(
+                p.elevation, p.resolution, tuple(p.origin), out / "dem_hillshade.png",
+                title="DEM from the predicted ground")
+            err = p.elevation - dem["reference_dem"].elevation
+            if np.isfinite(err).any():
+                images["DEM error"] = report.dem_error_png(
+                    err, p.resolution, tuple(p.origin), out / "dem_error.png",
+                    title="DEM error: predicted minus reference ground")
+    if latencies:
+        images["latency"] = report.latency_histogram_png(latencies, out / "latency.png")
+    return report.write_report(out, metrics, images, title=f"lidar_obstacles evaluation: {name}")
+
+
+def benchmark_isprs(folder: str | Path, *, params_file: str | Path | None = None) -> dict:
+    """All 15 ISPRS reference samples with one parameter set: per-sample and mean Type I,
+    Type II, total error and kappa, with the published figures beside them."""
+    import sys
+
+    from tqdm import tqdm
+
+    from lidar_obstacles.core.metrics import ground_object_errors
+
+    folder = Path(folder)
+    det_cfg, _ = _configs(params_file)
+    rows = {}
+    for s in tqdm(ISPRS_SAMPLES, desc="isprs", disable=None, file=sys.stderr):
+        path = folder / f"samp{s}-utm.laz"
+        inp = load_input(path)
+        t0 = time.perf_counter()
+        run_detector(inp, det_cfg)
+        seconds = time.perf_counter() - t0
+        _, ref, pred = _concat(inp)
+        e = ground_object_errors(ref == 2, pred == 2)
+        rows[f"samp{s}"] = {"points": int(len(ref)), "type_i": e["type_i"],
+                            "type_ii": e["type_ii"], "total_error": e["total_error"],
+                            "kappa": e["kappa"], "seconds": round(seconds, 3)}
+    keys = ("type_i", "type_ii", "total_error", "kappa")
+    mean = {k: float(np.mean([r[k] for r in rows.values()])) for k in keys}
+    return {"samples": rows, "mean": mean,
+            "points_per_second": sum(r["points"] for r in rows.values())
+            / sum(r["seconds"] for r in rows.values()),
+            "published_total_error_percent": PUBLISHED_TOTAL_ERROR}
+
+
+def isprs_table(result: dict) -> str:
+    """Markdown table of benchmark_isprs (percent)."""
+    lines = ["| sample | points | Type I % | Type II % | total % | kappa |",
+             "|---|---|---|---|---|---|"]
+    for name, r in result["samples"].items():
+        lines.append(f"| {name} | {r['points']} | {100 * r['type_i']:.2f} | "
+                     f"{100 * r['type_ii']:.2f} | {100 * r['total_error']:.2f} | "
+                     f"{r['kappa']:.3f} |")
+    m = result["mean"]
+    lines.append(f"| **mean** | | {100 * m['type_i']:.2f} | {100 * m['type_ii']:.2f} | "
+                 f"**{100 * m['total_error']:.2f}** | **{m['kappa']:.3f}** |")
+    for name, te in result["published_total_error_percent"].items():
+        lines.append(f"| {name} | | | | {te:.2f} | |")
+    return "\n".join(lines)

@@ -1,0 +1,230 @@
+"""`lidar-obstacles tune`: search the obstacle detector's parameters on labelled inputs.
+
+The space comes from the config schema (parameters declared ``tunable``, within their
+declared ranges; ``--space FILE`` narrows it). Candidates are a scrambled Sobol sequence
+(quasi-random: even coverage, reproducible by seed), the first being the start point (the
+defaults or ``--start``). A candidate is stopped early when its score on the first input is
+already far below the best candidate's there. The objective is maximised; wire and tower
+points classified as ground are a hard constraint (a heavy penalty per point share).
+The best candidate is written as a ROS 2 params YAML the nodes, `replay` and `evaluate`
+load; the summary reports each parameter's sensitivity and the score on held-out inputs.
+"""
+from __future__ import annotations
+
+import os
+import re
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lidar_obstacles.config import (
+    ObstacleDetectorConfig,
+    dump_ros_yaml,
+    flatten,
+    load_params_file,
+    params_of,
+    replace,
+)
+from lidar_obstacles.errors import ConfigError
+from lidar_obstacles.evaluate import LabelledInput, _concat, load_input, run_detector
+
+EARLY_STOP_MARGIN = 0.05  # a candidate this far below the best on the first input stops
+SAFETY_PENALTY = 10.0  # score lost per unit share of wire/tower points put in ground
+
+
+def parse_budget(text: str) -> float:
+    """'90s', '10m', '1.5h' or plain seconds -> seconds. ConfigError otherwise."""
+    m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([smh]?)\s*", text)
+    if not m or float(m.group(1)) <= 0:
+        raise ConfigError(f"budget '{text}': expected a duration like 90s, 10m or 1h")
+    return float(m.group(1)) * {"": 1, "s": 1, "m": 60, "h": 3600}[m.group(2)]
+
+
+@dataclass(frozen=True)
+class Dimension:
+    """One searched parameter: a numeric interval (log or linear) or a set of choices."""
+
+    name: str
+    low: float = 0.0
+    high: float = 0.0
+    choices: tuple[str, ...] = ()
+    log: bool = False
+    integer: bool = False
+
+    def value(self, u: float) -> Any:
+        """Map u in [0, 1) to a value of this dimension."""
+        if self.choices:
+            return self.choices[min(int(u * len(self.choices)), len(self.choices) - 1)]
+        if self.log and self.low > 0:
+            v = float(np.exp(np.log(self.low) + u * (np.log(self.high) - np.log(self.low))))
+        else:
+            v = self.low + u * (self.high - self.low)
+        return int(round(v)) if self.integer else v
+
+
+def search_space(space_file: str | Path | None = None) -> list[Dimension]:
+    """The tunable parameters of the obstacle detector, optionally narrowed by a YAML file
+    ``{name: [min, max]}`` or ``{name: [choice, ...]}`` (names must be declared parameters,
+    intervals inside the declared range)."""
+    infos = {p.name: p for p in params_of(ObstacleDetectorConfig)}
+    dims = {p.name: _dimension(p.name, p.spec.min, p.spec.max, p.spec.choices,
+                               p.spec.log_scale, p.type is int)
+            for p in infos.values() if p.spec.tunable}
+    if space_file is not None:
+        import yaml
+
+        try:
+            data = yaml.safe_load(Path(space_file).read_text()) or {}
+        except (OSError, yaml.YAMLError) as exc:
+            raise ConfigError(f"space file {space_file}: {exc}".splitlines()[0]) from None
+        if not isinstance(data, dict):
+            raise ConfigError(f"space file {space_file}: expected a mapping of parameters")
+        dims = {}
+        for name, spec in data.items():
+            info = infos.get(name)
+            if info is None:
+                raise ConfigError(f"space file {space_file}: unknown parameter '{name}'")
+            if not isinstance(spec, list) or not spec:
+                raise ConfigError(f"space file {space_file}: '{name}' needs a list")
+            if info.spec.choices or info.type is bool:
+                choices = tuple(spec)
+                for c in choices:
+                    from lidar_obstacles.config import coerce
+
+                    coerce(info, c)
+                dims[name] = Dimension(name, choices=choices)
+            else:
+                if len(spec) != 2:
+                    raise ConfigError(f"space file {space_file}: '{name}' needs [min, max]")
+                from lidar_obstacles.config import coerce
+
+                low, high = (coerce(info, v) for v in spec)
+                if low > high:
+                    raise ConfigError(f"space file {space_file}: '{name}' min > max")
+                dims[name] = _dimension(name, low, high, (), info.spec.log_scale,
+                                        info.type is int)
+    if not dims:
+        raise ConfigError("the search space is empty")
+    return list(dims.values())
+
+
+def _dimension(name, low, high, choices, log, integer) -> Dimension:
+    if choices:
+        return Dimension(name, choices=tuple(choices))
+    return Dimension(name, float(low), float(high), log=bool(log), integer=integer)
+
+
+def score_input(inp: LabelledInput, cfg: ObstacleDetectorConfig, objective: str) -> dict:
+    """Run the detector on one input and score it (higher is better)."""
+    from lidar_obstacles.core.metrics import evaluate_classes
+
+    run_detector(inp, cfg)
+    _, ref, pred = _concat(inp)
+    m = evaluate_classes(ref, pred)
+    go = m["ground_object"]
+    value = {"ground_kappa": go["kappa"], "kappa": m["kappa"],
+             "total_error": None if go["total_error"] is None else -go["total_error"]}[objective]
+    unsafe = m["safety"]["obstacle_as_ground"] or 0.0
+    value = (value if value is not None else 0.0) - SAFETY_PENALTY * unsafe
+    return {"score": float(value), "ground_kappa": go["kappa"], "total_error": go["total_error"],
+            "obstacle_as_ground": unsafe}
+
+
+def _mean_score(inputs: list[LabelledInput], cfg, objective) -> float:
+    return float(np.mean([score_input(i, cfg, objective)["score"] for i in inputs]))
+
+
+def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
+         budget_s: float = 600.0, max_trials: int = 200, seed: int = 0,
+         space_file: Path | None = None, start_file: Path | None = None,
+         objective: str = "ground_kappa") -> dict:
+    """Search, write the best candidate as params YAML, return the summary."""
+    from scipy.stats import qmc, spearmanr
+    from tqdm import tqdm
+
+    dims = search_space(space_file)
+    start = (load_params_file(start_file, ObstacleDetectorConfig, "obstacle_detector")
+             if start_file else ObstacleDetectorConfig())
+    sources = list(sources)
+    if validate is None and len(sources) > 1:
+        validate = [sources.pop()]  # guard against overfitting: keep one input unseen
+    inputs = [load_input(p) for p in sources]
+    held_out = [load_input(p) for p in (validate or [])]
+    sobol = qmc.Sobol(d=len(dims), scramble=True, seed=seed)
+    t_end = time.monotonic() + budget_s
+    trials: list[dict] = []
+    best: dict | None = None
+    best_first = -np.inf
+    bar = tqdm(total=max_trials, desc="tune", disable=None, file=sys.stderr)
+    try:
+        while len(trials) < max_trials and time.monotonic() < t_end:
+            if not trials:
+                updates = {d.name: flatten(start)[d.name] for d in dims}
+            else:
+                u = sobol.random(1)[0]
+                updates = {d.name: d.value(float(x)) for d, x in zip(dims, u)}
+            try:
+                cfg = replace(start, updates)
+            except ConfigError:
+                continue  # a combination the schema rejects is simply not a candidate
+            scores = []
+            stopped = False
+            for i, inp in enumerate(inputs):
+                scores.append(score_input(inp, cfg, objective)["score"])
+                if i == 0:
+                    if scores[0] < best_first - EARLY_STOP_MARGIN:
+                        stopped = True
+                        break
+                if time.monotonic() > t_end and best is not None:
+                    stopped = True
+                    break
+            trial = {"params": updates, "score": float(np.mean(scores)),
+                     "first_input_score": scores[0], "stopped_early": stopped}
+            trials.append(trial)
+            if not stopped and (best is None or trial["score"] > best["score"]):
+                best = trial
+                best_first = max(best_first, scores[0])
+            bar.update(1)
+            bar.set_postfix(best=f"{best['score']:.4f}" if best else "-")
+    finally:
+        bar.close()
+    if best is None:
+        raise ConfigError("the budget ended before a single candidate was scored")
+    best_cfg = replace(start, best["params"])
+    _write_atomic(out, "# Written by `lidar-obstacles tune`: the best candidate of "
+                       f"{len(trials)} on {', '.join(i.name for i in inputs)}.\n"
+                  + dump_ros_yaml(best_cfg, "/**"))
+    complete = [t for t in trials if not t["stopped_early"]]
+    sensitivity = {}
+    for d in dims:
+        vals = [t["params"][d.name] for t in complete]
+        ys = [t["score"] for t in complete]
+        if d.choices:
+            means = {c: float(np.mean([y for v, y in zip(vals, ys) if v == c]))
+                     for c in d.choices if c in vals}
+            sensitivity[d.name] = {"mean_score_by_choice": means}
+        elif len(set(vals)) > 2:
+            rho = spearmanr(vals, ys).statistic
+            sensitivity[d.name] = {"spearman_rho": None if np.isnan(rho) else float(rho)}
+    summary = {
+        "params_file": str(out), "objective": objective, "trials": len(trials),
+        "stopped_early": sum(t["stopped_early"] for t in trials),
+        "start_score": trials[0]["score"], "best_score": best["score"],
+        "best_params": best["params"], "sensitivity": sensitivity,
+        "inputs": [i.name for i in inputs],
+    }
+    if held_out:
+        summary["validation"] = {"inputs": [i.name for i in held_out],
+                                 "start_score": _mean_score(held_out, start, objective),
+                                 "best_score": _mean_score(held_out, best_cfg, objective)}
+    return summary
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, path)
