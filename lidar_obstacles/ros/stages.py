@@ -14,7 +14,7 @@ import numpy as np
 from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
 from lidar_obstacles.core.pipeline import DemPipeline, ObstacleDetector
 from lidar_obstacles.errors import CloudFormatError
-from lidar_obstacles.io.pointcloud2 import append_fields, read_points
+from lidar_obstacles.io.pointcloud2 import append_fields, read_points, select_points, xyz_of
 from lidar_obstacles.ros import messages
 
 
@@ -64,7 +64,7 @@ def prepare(msg, *, keep_non_finite: bool, max_points: int, pose: Pose | None,
         raise CloudFormatError(f"cloud has {n_in} points, more than input.max_points="
                                f"{max_points}")
     points = read_points(msg, keep_non_finite=keep_non_finite).reshape(-1)
-    xyz = np.column_stack([points["x"], points["y"], points["z"]]).astype(np.float64)
+    xyz = xyz_of(points)
     frame = msg.header.frame_id
     if transform and pose is not None:
         xyz = xyz @ pose.rotation().T + pose.position
@@ -115,8 +115,8 @@ class DetectorStage:
                                    overwrite=True)
         hdr = messages.header(prep.stamp_ns, prep.frame_id)
         out: list[tuple[str, object]] = [
-            ("ground", messages.cloud(out_points[ground], hdr)),
-            ("obstacles", messages.cloud(out_points[~ground], hdr)),
+            ("ground", messages.cloud(select_points(out_points, ground), hdr)),
+            ("obstacles", messages.cloud(select_points(out_points, ~ground), hdr)),
             ("obstacle_markers", messages.markers(result.objects, hdr)),
         ]
         if result.clearance is not None:

@@ -1,0 +1,86 @@
+"""`evaluate` and `tune` end to end on the shared data and on replayed flights."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from conftest import DATA, REPO, data_file
+from test_offline import run_cli
+
+
+def test_evaluate_replay_output_and_report(tmp_path):
+    run_cli("simulate", tmp_path / "flight", "--duration", "2", "--seed", "2")
+    run_cli("replay", tmp_path / "flight", tmp_path / "out", "--no-dem")
+    m = run_cli("evaluate", tmp_path / "out", "--report", tmp_path / "report")
+    assert m["kind"] == "replay_bag" and m["clouds"] == 20
+    assert m["n_points"] > 100_000
+    go = m["ground_object"]
+    assert 0.0 <= go["total_error"] <= 1.0 and go["kappa"] > 0.8
+    assert m["safety"]["obstacle_as_ground"] < 0.01
+    assert m["dem"]["grid"]["rmse_m"] is not None
+    html = (tmp_path / "report" / "report.html").read_text()
+    for png in ("confusion", "block_kappa", "classes", "errors", "dem_hillshade"):
+        assert (tmp_path / "report" / f"{png}.png").stat().st_size > 5000, png
+    assert html.count("data:image/png;base64,") >= 5
+    assert json.loads((tmp_path / "report" / "metrics.json").read_text())["n_points"] == m["n_points"]
+
+
+def test_evaluate_las_file():
+    m = run_cli("evaluate", data_file("isprs/samp11-utm.laz"), "--no-dem")
+    assert m["kind"] == "las" and m["n_points"] == 38010
+    assert m["blocks"]["nx"] == 6 and m["blocks"]["n_eligible"] > 10
+    assert m["ground_object"]["kappa"] > 0.7
+    assert m["latency"]["n"] == 1
+
+
+@pytest.mark.slow
+def test_evaluate_isprs_benchmark():
+    folder = DATA / "isprs"
+    if not folder.is_dir():
+        pytest.skip(f"shared data not present: {folder}")
+    res = run_cli("evaluate", "--benchmark", "isprs", folder)
+    assert len(res["samples"]) == 15
+    assert 0 < res["mean"]["total_error"] < 0.2
+
+
+@pytest.mark.slow
+def test_tune_improves_a_mistuned_start_and_the_yaml_loads_in_the_node(tmp_path):
+    src = data_file("isprs/samp51-utm.laz")
+    start = tmp_path / "bad.yaml"
+    start.write_text("/**:\n  ros__parameters:\n    ground:\n      method: ransac\n"
+                     "    ransac:\n      distance_threshold: 0.02\n")
+    space = tmp_path / "space.yaml"
+    space.write_text("ground.method: [ransac, tin, hybrid]\nransac.distance_threshold: [0.02, 2.0]\n")
+    out = tmp_path / "tuned.yaml"
+    summary = run_cli("tune", src, "--validate", data_file("isprs/samp52-utm.laz"),
+                      "--start", start, "--space", space, "--out", out, "--budget", "120s",
+                      "--trials", "10", "--seed", "1")
+    assert summary["best_score"] > summary["start_score"] + 0.1
+    assert summary["validation"]["best_score"] > summary["validation"]["start_score"]
+    assert set(summary["sensitivity"]) <= {"ground.method", "ransac.distance_threshold"}
+    # The YAML loads in the live node (which exits on a bad parameter with status 2).
+    exe = [sys.executable, "-m", "lidar_obstacles.ros.obstacle_detector", "--ros-args",
+           "--params-file", str(out)]
+    proc = subprocess.Popen(exe, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    try:
+        line = ""
+        for line in proc.stdout:
+            if "subscribed to" in line:
+                break
+        assert "subscribed to" in line
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
+
+
+def test_tune_rejects_bad_space(tmp_path):
+    space = tmp_path / "space.yaml"
+    space.write_text("ransac.distance_threshold: [-1, 2]\n")
+    res = subprocess.run([sys.executable, "-m", "lidar_obstacles.cli", "tune",
+                          str(data_file("isprs/samp51-utm.laz")), "--space", str(space)],
+                         cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and "ransac.distance_threshold" in res.stderr
