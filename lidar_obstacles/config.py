@@ -269,6 +269,9 @@ class RbfnnConfig:
                           min=0.01, max=100.0)
     max_neurons: int = param(200, "units added at most", min=1, max=5000)
     use_intensity: bool = param(False, "add intensity to the network inputs, as the paper did")
+    max_train: int = param(10000, "the network trains on at most this many random samples "
+                           "(training costs samples x units^2; the paper trained on 9 724)",
+                           "points", min=10, max=10_000_000)
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,6 @@ at the mean x, y, z of its points, so sloping cells are not biased towards the c
 """
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,9 +23,6 @@ from lidar_obstacles.config import DemBuilderConfig, ThinningConfig
 from lidar_obstacles.core.interpolate import degeneracy, interpolate, merge_coincident
 from lidar_obstacles.core.kmeans import kmeans_ground
 from lidar_obstacles.errors import CloudFormatError, ConfigError
-
-log = logging.getLogger(__name__)
-
 
 @dataclass(frozen=True)
 class DemGrid:
@@ -114,7 +110,7 @@ def tin_curvature(xyz: np.ndarray) -> np.ndarray:
     if degeneracy(xyz[:, :2]):
         return np.zeros(n)
     try:
-        tri = Delaunay(xyz[:, :2])
+        tri = Delaunay(xyz[:, :2] - xyz[:, :2].mean(axis=0))  # centred: conditioning
     except QhullError:
         return np.zeros(n)
     indptr, nbrs = tri.vertex_neighbor_vertices
@@ -216,7 +212,8 @@ class _Cells:
         hi = np.minimum(old_ij + np.array(old_shape[::-1]), origin_ij + np.array(shape[::-1]))
         if np.any(hi <= lo):
             return
-        src = (slice(lo[1] - old_ij[1], hi[1] - old_ij[1]), slice(lo[0] - old_ij[0], hi[0] - old_ij[0]))
+        src = (slice(lo[1] - old_ij[1], hi[1] - old_ij[1]),
+               slice(lo[0] - old_ij[0], hi[0] - old_ij[0]))
         dst = (slice(lo[1] - origin_ij[1], hi[1] - origin_ij[1]),
                slice(lo[0] - origin_ij[0], hi[0] - origin_ij[0]))
         self.count[dst] = old[0][src]
@@ -304,7 +301,9 @@ def _check_xyz(xyz: np.ndarray) -> np.ndarray:
 def _flat_reason(xyz: np.ndarray) -> str:
     if len(xyz) == 0:
         return "no ground points"
-    reason = degeneracy(merge_coincident(xyz[:, :2], xyz[:, 2])[0])
+    # Points spanning a plane are >= 3 distinct ones; only a degenerate set pays for the
+    # merge that counts its distinct points.
+    reason = degeneracy(xyz[:, :2]) and degeneracy(merge_coincident(xyz[:, :2], xyz[:, 2])[0])
     if reason:
         return reason + ": measured cells only, nothing interpolated"
     if np.ptp(xyz[:, 2]) == 0:
@@ -312,26 +311,32 @@ def _flat_reason(xyz: np.ndarray) -> str:
     return ""
 
 
-def build_dem(ground_xyz: np.ndarray, *, cfg: DemBuilderConfig) -> DemGrid:
+def build_dem(ground_xyz: np.ndarray, *, cfg: DemBuilderConfig,
+              bounds: tuple[float, float, float, float] | None = None) -> DemGrid:
     """Whole-survey DEM of ground points (N, 3) float64 metres.
 
-    The grid covers the points' bounding box, origin aligned to multiples of
-    ``cfg.dem.resolution``. Raises ConfigError when it would exceed ``cfg.dem.max_cells``.
-    Degenerate input (no points, < 3 distinct, collinear) gives an empty or
-    measured-only DEM with ``reason`` set, never an exception from Qhull.
+    The grid covers ``bounds`` (xmin, ymin, xmax, ymax metres; default the points'
+    bounding box), origin aligned to multiples of ``cfg.dem.resolution``, so two DEMs
+    built with the same bounds share their grid cell for cell. Raises ConfigError when it
+    would exceed ``cfg.dem.max_cells``. Degenerate input (no points, < 3 distinct,
+    collinear) gives an empty or measured-only DEM with ``reason`` set, never an
+    exception from Qhull.
     """
     xyz = _check_xyz(ground_xyz)
     res = cfg.dem.resolution
-    if len(xyz) == 0:
+    if len(xyz) == 0 and bounds is None:
         return empty_grid(res, "no ground points")
-    lo = np.floor(xyz[:, :2].min(axis=0) / res).astype(np.int64)
-    hi = np.floor(xyz[:, :2].max(axis=0) / res).astype(np.int64)
+    box = (np.array(bounds, dtype=np.float64).reshape(2, 2) if bounds is not None
+           else np.stack([xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)]))
+    lo = np.floor(box[0] / res).astype(np.int64)
+    hi = np.floor(box[1] / res).astype(np.int64)
     cols, rows = (hi - lo + 1).tolist()
     if rows * cols > cfg.dem.max_cells:
         raise ConfigError(f"DEM of {rows} x {cols} cells exceeds dem.max_cells = "
                           f"{cfg.dem.max_cells}; raise it or coarsen dem.resolution")
     cells = _Cells(lo, (rows, cols), res)
-    cells.add(xyz)
+    if len(xyz):
+        cells.add(xyz)
     reason = _flat_reason(xyz)
     if not reason.endswith("nothing interpolated"):
         cells.refill((slice(0, rows), slice(0, cols)), cfg=cfg)

@@ -134,7 +134,7 @@ class DemPipeline:
         if grid_changed:
             self.dem = RollingDem(cfg)
         else:
-            self.dem.reconfigure(cfg)
+            self.dem.cfg = cfg  # interpolation settings apply from the next update
         self._context = None
 
     def ground_of(self, xyz: np.ndarray, *, stamp: float,
@@ -154,9 +154,9 @@ class DemPipeline:
                                 rng=np.random.default_rng(self.cfg.ransac.seed))
             ctx.update(xyz[g.ground], stamp)
             return g.ground
-        from lidar_obstacles.core.dem import kmeans_ground
+        from lidar_obstacles.core.kmeans import kmeans_ground
 
-        return kmeans_ground(xyz, intensity, cfg=self.cfg).ground
+        return kmeans_ground(xyz, cfg=self.cfg.kmeans, intensity=intensity).ground
 
     def process(self, xyz: np.ndarray, *, stamp: float = 0.0,
                 vehicle_xyz: np.ndarray | None = None,

@@ -1,30 +1,35 @@
 """Deterministic, labelled synthetic UAV LiDAR flight (the package's embedded default).
 
-A scene is built once from analytic primitives: a terrain height field (slope, smooth
-hills and fine detail), convex buildings with flat, gable or hip roofs, trees (ellipsoid
-crowns that are semi-transparent to the beam, cylindrical trunks), shrubs, lattice
-transmission towers made of thin members, catenary conductors between the towers' arms
-and poles. A UAV flies a closed loop (lawn-mower or racetrack) over it at a set height
-above the terrain and speed, carrying a 2-D scanning LiDAR that looks down; every
-``1 / rate`` seconds one cloud is ray-cast, vectorised over all pulses:
+A scene is built once, per (scene, seed), from analytic primitives over a ~1 km square:
+a terrain height field (slope, smooth hills, metre-scale relief), convex buildings with
+flat, gable or hip roofs, trees (ellipsoid crowns that are semi-transparent to the beam,
+cylindrical trunks), bushes and low cover, lattice transmission towers made of thin
+members, catenary conductors between the towers' arms, and poles. A UAV flies a closed
+loop over it (lawn-mower, or a racetrack along the power line for ``corridor``) at a set
+height above the terrain and speed; longer flights repeat the loop. It carries a 2-D
+scanning LiDAR looking down (90 x 40 deg by default); every ``1 / rate`` s one cloud is
+ray-cast, vectorised over all pulses:
 
-- every pulse meets the terrain (Newton iterations on the height field) and the nearest
-  solid primitive (roof, wall, trunk, pole) ends it;
-- crowns and shrubs return volumetric echoes (exponential free path inside the crown),
-  wires and tower members return partial echoes, and the pulse goes on with some
-  probability, so vegetation and wires give multiple returns
-  (``return_number`` / ``number_of_returns``) and the ground shows below them;
+- every pulse meets the terrain (Newton steps on the height field) and the nearest solid
+  primitive (roof, wall, trunk, pole) ends it;
+- crowns and bushes give volumetric echoes (exponential free path in the foliage), wires
+  and tower members partial echoes, after which the pulse goes on with some probability:
+  vegetation and wires give multiple returns (``return_number`` / ``number_of_returns``)
+  with the ground below them; an echo closer to the ground than the pulse separation
+  merges with it (low cover hides the ground);
 - range noise, a few outliers (class 7) far above or below the surface, and intensity by
-  material and incidence angle are added.
+  material, incidence angle and shared pulse energy.
 
-Primitives are culled per frame by a spatial grid, then by projecting their bounding
+Per frame, primitives are culled by a spatial grid and by projecting their bounding
 boxes into the sensor's tangent plane, where the pulses are bucketed; only (pulse,
 primitive) pairs that can meet are intersected.
 
 Labels are ASPRS codes: 2 ground, 3/4/5 vegetation by height above the true terrain
-(< 0.5, 0.5-2, > 2 m), 6 building, 7 noise, 14 wire conductor, 15 transmission tower
+(< 0.5, 0.5-2, >= 2 m), 6 building, 7 noise, 14 wire conductor, 15 transmission tower
 (members and insulators), 1 unclassified (poles). ``point_id`` is unique and increasing
 over the flight. Frames are generated lazily: memory does not grow with the duration.
+Pulse origins move along the trajectory within a frame, so map-frame clouds are exact
+(deskewed) and sensor-frame clouds are ``R^T (p_map - t)`` with the frame's pose.
 """
 from __future__ import annotations
 
@@ -120,8 +125,10 @@ class SimSettings:
             if not isinstance(value, (int, float, np.integer, np.floating)) \
                     or not math.isfinite(value) or not lo <= value <= hi:
                 raise ConfigError(f"{name}: {value!r} is outside [{lo:g}, {hi:g}]")
+        # Echo counts stay within a few % of the target (the pulse count adapts); 1.25
+        # leaves room, so that point_id (uint32) cannot wrap.
         frames = math.ceil(self.duration * self.rate)
-        if frames * self.points_per_frame * 3 >= 2**32:
+        if frames * self.points_per_frame * 1.25 >= 2**32:
             raise ConfigError(f"duration: {self.duration:g} s at {self.rate:g} Hz and "
                               f"{self.points_per_frame} points per frame overflows the "
                               "uint32 point_id")
@@ -251,7 +258,6 @@ class _Builder:
         self.planes: list[np.ndarray] = []     # (9, 4) each
         self.plane_refl: list[np.ndarray] = []
         self.poly_box: list[np.ndarray] = []   # (2, 3) each
-        self.footprints: list[tuple[float, float, float]] = []  # cx, cy, radius
         self.ell: list[np.ndarray] = []        # (n, 7): c3, r3, lambda
         self.cyl: list[np.ndarray] = []        # (n, 7): x, y, z0, z1, r, cls, refl
         self.seg: list[np.ndarray] = []        # (n, 9): p0, p1, r, cls, refl
@@ -297,7 +303,6 @@ class _Builder:
         lo = np.array([corners[:, 0].min(), corners[:, 1].min(), z_floor])
         hi = np.array([corners[:, 0].max(), corners[:, 1].max(), z_top])
         self.poly_box.append(np.stack([lo, hi]))
-        self.footprints.append((cx, cy, math.hypot(hx, hy)))
 
     # -- vegetation
     def add_trees(self, x: np.ndarray, y: np.ndarray, height: np.ndarray,
@@ -352,19 +357,27 @@ class _Builder:
         yaws = np.arctan2(along[:, 1], along[:, 0])
         base_z = self.terrain.height(route[:, 0], route[:, 1])
         height = np.asarray(height, float).copy()
-        for _ in range(3):   # raise towers until every conductor clears the ground by 12 m
-            attach = [_tower_attachments(h) for h in height]
+        # Every conductor must clear the ground by 12 m: over a dip, string the span
+        # tighter first (less sag), and raise its towers only if that is not enough,
+        # so that wires stay within 10-40 m above ground on most terrain.
+        sags = np.full(t - 1, _SAGS[0])
+        for _ in range(4):
             deficit = np.zeros(t)
             for i in range(t - 1):
-                a = _to_world(attach[i], route[i], base_z[i], yaws[i])
-                b = _to_world(attach[i + 1], route[i + 1], base_z[i + 1], yaws[i + 1])
-                clearance = min(self._catenary_clearance(a[k], b[k]) for k in range(len(a)))
+                a = _to_world(_tower_attachments(height[i]), route[i], base_z[i], yaws[i])
+                b = _to_world(_tower_attachments(height[i + 1]), route[i + 1],
+                              base_z[i + 1], yaws[i + 1])
+                for sag in _SAGS:
+                    clearance = min(self._clearance(a[k], b[k], sag) for k in range(len(a)))
+                    if clearance >= 12.0:
+                        break
+                sags[i] = sag
                 need = max(0.0, 12.0 - clearance)
                 deficit[i] = max(deficit[i], need)
                 deficit[i + 1] = max(deficit[i + 1], need)
             if not deficit.any():
                 break
-            height += deficit + 0.5
+            height += deficit + 0.2
         offset = len(self.towers)
         for i in range(t):
             p0, p1, radius = _tower_members(height[i])
@@ -381,15 +394,15 @@ class _Builder:
             b = _to_world(_tower_attachments(height[i + 1]), route[i + 1], base_z[i + 1],
                           yaws[i + 1])
             for k in range(len(a)):
-                pts = _catenary(a[k], b[k], sag_ratio=0.025 if k == len(a) - 1 else 0.032)
+                pts = _catenary(a[k], b[k], sag_ratio=_wire_sag(sags[i], k, len(a)))
                 # Wire radius is a scanner setting: 0 here, applied at intersection time.
                 self.seg.append(np.column_stack([pts[:-1], pts[1:], np.zeros(len(pts) - 1),
                                                  np.full(len(pts) - 1, WIRE),
                                                  np.full(len(pts) - 1, _R_WIRE)]))
             self.spans.append((offset + i, offset + i + 1))
 
-    def _catenary_clearance(self, a: np.ndarray, b: np.ndarray) -> float:
-        pts = _catenary(a, b, sag_ratio=0.032)
+    def _clearance(self, a: np.ndarray, b: np.ndarray, sag: float) -> float:
+        pts = _catenary(a, b, sag_ratio=sag)
         return float((pts[:, 2] - self.terrain.height(pts[:, 0], pts[:, 1])).min())
 
     # -- freeze
@@ -413,7 +426,10 @@ class _Builder:
         box = np.concatenate(boxes)
         grid = _CullGrid(box)
         return _Scene(name=name, seed=seed, terrain=self.terrain, planes=planes,
-                      plane_refl=plane_refl.astype(np.float32), ell=ell, cyl=cyl, seg=seg,
+                      plane_refl=plane_refl.astype(np.float32),
+                      ell_cols=tuple(np.ascontiguousarray(c) for c in np.column_stack(
+                          [ell[:, :3], 1.0 / ell[:, 3:6], ell[:, 6]]).T),
+                      cyl=cyl, seg=seg,
                       kind=kind, index=index, box=box, grid=grid, path=path,
                       towers=np.array(self.towers).reshape(-1, 3),
                       tower_heights=np.array(self.tower_heights),
@@ -427,6 +443,14 @@ class _Builder:
 _ARM_DROP = np.array([9.0, 5.0, 1.0])   # m below the body top
 _ARM_HALF = np.array([5.5, 7.0, 5.0])   # m, arm length from the axis
 _INSULATOR = 2.5                        # m
+
+
+_SAGS = (0.032, 0.026, 0.02, 0.015)     # sag / span of the conductors, tried in turn
+
+
+def _wire_sag(conductor_sag: float, k: int, n: int) -> float:
+    """Sag ratio of wire k of n: the earth wire (last) is strung tighter."""
+    return 0.8 * conductor_sag if k == n - 1 else conductor_sag
 
 
 def _tower_attachments(height: float) -> np.ndarray:
@@ -537,7 +561,7 @@ class _Scene:
     terrain: _Terrain
     planes: np.ndarray       # (B, 9, 4): n . p <= d
     plane_refl: np.ndarray   # (B, 9)
-    ell: np.ndarray          # (E, 7): centre, radii, extinction 1/m
+    ell_cols: tuple          # 7 x (E,): centre x y z, 1 / radii, extinction 1/m
     cyl: np.ndarray          # (C, 7): x, y, z0, z1, radius, class, reflectance
     seg: np.ndarray          # (S, 9): p0, p1, radius, class, reflectance
     kind: np.ndarray         # (P,) primitive kind
@@ -558,13 +582,17 @@ class _Scene:
 
 
 class _Path:
-    """A closed XY polyline with rounded corners, flown at constant speed."""
+    """A closed XY polyline with rounded corners (circular arcs), flown at constant speed.
+
+    Pieces alternate arc, line, arc, line...; ``xy(s)`` evaluates any arc length s,
+    wrapping around the loop, so flights of any duration repeat the loop.
+    """
 
     def __init__(self, corners: np.ndarray, radius: float, start_xy: tuple[float, float]):
         corners = np.asarray(corners, float)
         n = len(corners)
-        pieces = []   # (kind, a, b, c, d, length): line p0, dir / arc centre, r, phi0, sweep
-        entries, exits = [], []
+        kind, origin, dirn, phi0, sweep, length = [], [], [], [], [], []
+        exits, entries = [], []
         for i in range(n):
             p = corners[i]
             a = p - corners[i - 1]
@@ -572,58 +600,55 @@ class _Path:
             a /= np.linalg.norm(a)
             b /= np.linalg.norm(b)
             theta = math.acos(float(np.clip(a @ b, -1.0, 1.0)))
-            d = radius * math.tan(theta / 2)
+            d = radius * math.tan(theta / 2)          # corner to tangent point
             turn = 1.0 if a[0] * b[1] - a[1] * b[0] > 0 else -1.0
             start = p - a * d
             centre = start + radius * turn * np.array([-a[1], a[0]])
-            phi0 = math.atan2(start[1] - centre[1], start[0] - centre[0])
             entries.append(start)
             exits.append(p + b * d)
-            pieces.append(("arc", centre, phi0, turn * theta, radius * theta))
-        self.kind, self.p, self.dirn, self.phi0, self.sweep, self.len = [], [], [], [], [], []
-        for i in range(n):
-            _, centre, phi0, sweep, length = pieces[i]
-            self._add(1, centre, np.zeros(2), phi0, sweep, length)
-            seg_start, seg_end = exits[i], entries[(i + 1) % n]
-            v = seg_end - seg_start
-            length = float(np.linalg.norm(v))
-            self._add(0, seg_start, v / max(length, 1e-9), 0.0, 0.0, length)
+            kind.append(1)
+            origin.append(centre)
+            dirn.append(np.zeros(2))
+            phi0.append(math.atan2(start[1] - centre[1], start[0] - centre[0]))
+            sweep.append(turn * theta)
+            length.append(radius * theta)
+        for i in range(n):      # the straight legs between the arcs
+            v = entries[(i + 1) % n] - exits[i]
+            leg = float(np.linalg.norm(v))
+            kind.insert(2 * i + 1, 0)
+            origin.insert(2 * i + 1, exits[i])
+            dirn.insert(2 * i + 1, v / max(leg, 1e-9))
+            phi0.insert(2 * i + 1, 0.0)
+            sweep.insert(2 * i + 1, 0.0)
+            length.insert(2 * i + 1, leg)
         self.radius = radius
-        self.kind = np.array(self.kind)
-        self.p = np.array(self.p)
-        self.dirn = np.array(self.dirn)
-        self.phi0 = np.array(self.phi0)
-        self.sweep = np.array(self.sweep)
-        lengths = np.array(self.len)
-        self.cum = np.concatenate([[0.0], np.cumsum(lengths)])
+        self.kind = np.array(kind)
+        self.origin = np.array(origin)
+        self.dirn = np.array(dirn)
+        self.phi0 = np.array(phi0)
+        self.sweep = np.array(sweep)
+        self.cum = np.concatenate([[0.0], np.cumsum(length)])
         self.length = float(self.cum[-1])
         probe = np.arange(0.0, self.length, 1.0)
         xy, _ = self.xy(probe, offset=0.0)
         self.s0 = float(probe[np.argmin(np.hypot(xy[:, 0] - start_xy[0],
                                                  xy[:, 1] - start_xy[1]))])
 
-    def _add(self, kind, p, dirn, phi0, sweep, length):
-        self.kind.append(kind)
-        self.p.append(p)
-        self.dirn.append(dirn)
-        self.phi0.append(phi0)
-        self.sweep.append(sweep)
-        self.len.append(length)
-
     def xy(self, s: np.ndarray, offset: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Position (K, 2) and unit heading (K, 2) at arc length s (K,) m."""
+        """Position (K, 2) m and unit heading (K, 2) at arc length s (K,) m from the start."""
         s = (np.asarray(s, float) + (self.s0 if offset is None else offset)) % self.length
         i = np.clip(np.searchsorted(self.cum, s, side="right") - 1, 0, len(self.kind) - 1)
         u = s - self.cum[i]
         line = self.kind[i] == 0
         pos = np.empty((len(s), 2))
         head = np.empty((len(s), 2))
-        pos[line] = self.p[i[line]] + self.dirn[i[line]] * u[line, None]
+        pos[line] = self.origin[i[line]] + self.dirn[i[line]] * u[line, None]
         head[line] = self.dirn[i[line]]
         arc = ~line
         sign = np.sign(self.sweep[i[arc]])
         phi = self.phi0[i[arc]] + sign * u[arc] / self.radius
-        pos[arc] = self.p[i[arc]] + self.radius * np.column_stack([np.cos(phi), np.sin(phi)])
+        pos[arc] = self.origin[i[arc]] + self.radius * np.column_stack([np.cos(phi),
+                                                                       np.sin(phi)])
         head[arc] = sign[:, None] * np.column_stack([-np.sin(phi), np.cos(phi)])
         return pos, head
 
@@ -679,6 +704,11 @@ def _near_polyline(pts: np.ndarray, line: np.ndarray, dist: float) -> np.ndarray
 
 def _tree_heights(rng: np.random.Generator, n: int, lo: float, hi: float) -> np.ndarray:
     return lo + (hi - lo) * rng.beta(2.2, 1.8, n)
+
+
+def _shrub_heights(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Half low cover (grass tufts, crops: class 3), half bushes (mostly class 4)."""
+    return np.where(rng.random(n) < 0.5, rng.uniform(0.25, 0.6, n), rng.uniform(0.7, 2.3, n))
 
 
 def _add_village(b: _Builder, rng: np.random.Generator, cx: float, cy: float, nx: int,
@@ -741,15 +771,23 @@ def _build_mixed(rng: np.random.Generator) -> tuple[_Builder, _Path]:
         a = rng.uniform(-500, 500, 2)
         ang = rng.choice([0.0, np.pi / 2]) + rng.normal(0, 0.1)
         s = np.arange(0, rng.uniform(150, 400), 7.0)
-        hedges.append(a + np.outer(s, [math.cos(ang), math.sin(ang)]) + rng.normal(0, 1, (len(s), 2)))
+        hedges.append(a + np.outer(s, [math.cos(ang), math.sin(ang)])
+                      + rng.normal(0, 1, (len(s), 2)))
     trees = np.vstack([wood, scattered] + hedges)
     ok = ~(exclude(trees, 3.0) | _in_discs(trees, discs_a + [0, 0, 3]))
     trees = trees[ok]
     b.add_trees(trees[:, 0], trees[:, 1], _tree_heights(rng, len(trees), 4.0, 24.0), rng)
-    shrubs = np.vstack([_jittered(rng, 9.0, 0.5)[:, :2]])
+    shrubs = _jittered(rng, 9.0, 0.5)
     shrubs = shrubs[_in_discs(shrubs, patches) | (rng.random(len(shrubs)) < 0.08)]
     shrubs = shrubs[~(_in_discs(shrubs, discs_a) | (np.abs(shrubs[:, 1] - road_y) < 5))]
-    b.add_shrubs(shrubs[:, 0], shrubs[:, 1], rng.uniform(0.3, 2.2, len(shrubs)), rng)
+    b.add_shrubs(shrubs[:, 0], shrubs[:, 1], _shrub_heights(rng, len(shrubs)), rng)
+    # Meadows: low cover (class 3), one by the start of the flight.
+    meadows = np.vstack([[-45.0, -8.0, 22.0],
+                         np.column_stack([rng.uniform(-500, 500, (6, 2)),
+                                          rng.uniform(30, 70, 6)])])
+    low = _jittered(rng, 3.0, 0.7)
+    low = low[_in_discs(low, meadows) & ~exclude(low, 1.0) & ~_in_discs(low, discs_a)]
+    b.add_shrubs(low[:, 0], low[:, 1], rng.uniform(0.2, 0.5, len(low)), rng)
     # Street lights along the road, away from the towers.
     px = np.arange(-520.0, 520.0, 35.0) + 5.0
     poles = np.column_stack([px, np.full(len(px), road_y - 6.0)])
@@ -785,12 +823,12 @@ def _build_corridor(rng: np.random.Generator) -> tuple[_Builder, _Path]:
     # Fields: low crops and bushes, also under the line (the corridor is kept low).
     shrubs = _jittered(rng, 7.0, 0.35)
     shrubs = shrubs[~_in_discs(shrubs, discs_a)]
-    b.add_shrubs(shrubs[:, 0], shrubs[:, 1], rng.uniform(0.25, 2.0, len(shrubs)), rng)
+    b.add_shrubs(shrubs[:, 0], shrubs[:, 1], _shrub_heights(rng, len(shrubs)), rng)
     px = np.arange(-500.0, 500.0, 40.0)
     poles = np.column_stack([px, np.full(len(px), -80.0)])
     b.add_poles(poles[:, 0], poles[:, 1], rng.uniform(8.0, 10.0, len(poles)))
     corners = np.array([[-480.0, -16.0], [480.0, -16.0], [480.0, 16.0], [-480.0, 16.0]])
-    path = _Path(corners, 15.5, (-60.0, -16.0))
+    path = _Path(corners, 15.5, (-135.0, -16.0))   # a tower is in view at once
     return b, path
 
 
@@ -816,7 +854,8 @@ def _build_urban(rng: np.random.Generator) -> tuple[_Builder, _Path]:
                     tall = rng.random() < 0.3
                     length = rng.uniform(0.55, 0.85) * sub
                     width = rng.uniform(0.45, 0.8) * sub
-                    wall = rng.uniform(10.0, 30.0) if tall else rng.uniform(3.0, 9.0)
+                    # Up to 20 m: the UAV flies 40 m above the ground.
+                    wall = rng.uniform(10.0, 20.0) if tall else rng.uniform(3.0, 9.0)
                     roof = "flat" if tall else rng.choice(["flat", "gable", "hip"])
                     b.add_building(x, y, rng.choice([0.0, np.pi / 2]) + rng.normal(0, 0.02),
                                    length, width, wall, roof, rng.uniform(0.25, 0.4) * width,
@@ -835,14 +874,15 @@ def _build_urban(rng: np.random.Generator) -> tuple[_Builder, _Path]:
     side_a = np.vstack(side)
     lights = side_a[(np.round(side_a.sum(axis=1) / 12.0) % 3) == 0]
     street_trees = side_a[rng.random(len(side_a)) < 0.3]
-    street_trees = street_trees[~_in_discs(street_trees, lights[:, [0, 1, 0]] * [1, 1, 0] + [0, 0, 3])]
+    light_discs = np.column_stack([lights, np.full(len(lights), 3.0)])
+    street_trees = street_trees[~_in_discs(street_trees, light_discs)]
     park_pts = _jittered(rng, 7.0, 0.8)
     trees = np.vstack([street_trees, park_pts[_in_discs(park_pts, parks_a)]])
     trees = trees[~_in_discs(trees, discs_a + [0, 0, 2])]
     b.add_trees(trees[:, 0], trees[:, 1], _tree_heights(rng, len(trees), 4.0, 16.0), rng)
     shrubs = _jittered(rng, 8.0, 0.5)
     shrubs = shrubs[_in_discs(shrubs, parks_a) & ~_in_discs(shrubs, discs_a)]
-    b.add_shrubs(shrubs[:, 0], shrubs[:, 1], rng.uniform(0.3, 2.0, len(shrubs)), rng)
+    b.add_shrubs(shrubs[:, 0], shrubs[:, 1], _shrub_heights(rng, len(shrubs)), rng)
     b.add_poles(lights[:, 0], lights[:, 1], rng.uniform(7.0, 9.0, len(lights)))
     path = _Path(_lawnmower(-430.0, 430.0, -400.0, 50.0, 18), 22.0, (-100.0, 0.0))
     return b, path
@@ -861,7 +901,7 @@ def _build_forest(rng: np.random.Generator) -> tuple[_Builder, _Path]:
     b.add_trees(trees[:, 0], trees[:, 1], _tree_heights(rng, len(trees), 5.0, 28.0), rng)
     shrubs = _jittered(rng, 7.0, 0.45)
     shrubs = shrubs[~_in_discs(shrubs, discs)]
-    b.add_shrubs(shrubs[:, 0], shrubs[:, 1], rng.uniform(0.3, 2.2, len(shrubs)), rng)
+    b.add_shrubs(shrubs[:, 0], shrubs[:, 1], _shrub_heights(rng, len(shrubs)), rng)
     path = _Path(_lawnmower(-430.0, 430.0, -400.0, 50.0, 18), 22.0, (-100.0, 0.0))
     return b, path
 
@@ -946,14 +986,20 @@ def _pose(scene: _Scene, settings: SimSettings, t: float, phase: np.ndarray):
 
 
 def simulate_flight(settings: SimSettings) -> Iterator[SimFrame]:
-    """Yield the clouds of a labelled synthetic flight, one per ``1 / settings.rate`` s.
+    """The clouds of a labelled synthetic flight, one per ``1 / settings.rate`` s.
 
-    Lazy: each frame is made when asked for, memory stays flat whatever the duration.
-    Deterministic: the same settings give the same bytes. Frame k has stamp k / rate.
+    Returns an iterator of :class:`SimFrame` (``ceil(duration * rate)`` frames, frame k
+    stamped k / rate). Lazy: each frame is made when asked for, memory stays flat
+    whatever the duration. Deterministic: the same settings give the same bytes.
+    Raises :class:`ConfigError` at once when ``settings`` is not a :class:`SimSettings`.
     """
     if not isinstance(settings, SimSettings):
         raise ConfigError(f"settings: expected SimSettings, got {type(settings).__name__}")
-    scene = _scene(settings.scene, int(settings.seed))
+    # Checked (and the scene built) now, not at the first next().
+    return _frames(_scene(settings.scene, int(settings.seed)), settings)
+
+
+def _frames(scene: _Scene, settings: SimSettings) -> Iterator[SimFrame]:
     n_frames = max(1, math.ceil(settings.duration * settings.rate - 1e-9))
     phase = np.random.default_rng([int(settings.seed), 7]).uniform(0, 2 * np.pi, 2)
     echoes_per_pulse = 1.15
@@ -978,6 +1024,9 @@ def simulate_flight(settings: SimSettings) -> Iterator[SimFrame]:
         out["classification"] = pts["classification"]
         out["point_id"] = np.arange(next_id, next_id + n, dtype=np.uint64).astype(np.uint32)
         next_id += n
+        if next_id >= 2**32:
+            raise ConfigError(f"duration: {settings.duration:g} s overflows the uint32 "
+                              f"point_id after {k + 1} frames")
         yield SimFrame(stamp=stamp, points=out, position=pos, orientation=quat,
                        velocity=vel)
 
@@ -1001,7 +1050,7 @@ def _directions(settings: SimSettings, rng: np.random.Generator, pulses: int) ->
     u = -ua + 2 * ua * (col + rng.random(len(j))) / ny
     v = va - 2 * va * (row + rng.random(len(j))) / nx
     d = np.column_stack([v, u, -np.ones(len(j))])
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
+    return d / np.sqrt(1.0 + u * u + v * v)[:, None]
 
 
 def _ground_hits(terrain: _Terrain, o: np.ndarray, d: np.ndarray):
@@ -1009,11 +1058,11 @@ def _ground_hits(terrain: _Terrain, o: np.ndarray, d: np.ndarray):
 
     Newton on g(t) = o_z + t d_z - f(o_xy + t d_xy) from the flat-ground guess; the
     residual is below 1e-8 m after three steps on every scene (slopes < 0.4, rays
-    within 60 deg of nadir), so four are taken and the last gradient is kept.
+    within 60 deg of nadir); the gradient of the last step is kept (for the incidence).
     """
     z0 = terrain.height(o[:, 0], o[:, 1])
     t = (o[:, 2] - z0) / -d[:, 2]
-    for _ in range(4):
+    for _ in range(3):
         x = o[:, 0] + t * d[:, 0]
         y = o[:, 1] + t * d[:, 1]
         z, gx, gy = terrain.height_grad(x, y)
@@ -1036,6 +1085,8 @@ def _pairs(scene: _Scene, prims: np.ndarray, centre: np.ndarray, u: np.ndarray,
     top = np.minimum(hi[:, 2], -0.5)     # rays go down: only the part below the sensor
     keep = lo[:, 2] < top
     prims, lo, hi, top = prims[keep], lo[keep], hi[keep], top[keep]
+    if len(prims) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
     cx = np.stack([lo[:, 0], hi[:, 0]], axis=1)[:, :, None]
     cy = np.stack([lo[:, 1], hi[:, 1]], axis=1)[:, :, None]
     inv = 1.0 / -np.stack([lo[:, 2], top], axis=1)[:, None, :]
@@ -1139,14 +1190,14 @@ def _hit_segments(scene: _Scene, ray, idx, o, d, wire_radius: float):
 
 def _hit_ellipsoids(scene: _Scene, ray, idx, o, d):
     """Ray intervals [t_in, t_out] inside crowns / shrubs, and their extinction, 1/m."""
-    e = scene.ell[idx]
-    # Component-wise: faster than einsum on (K, 3) gathers for 10^5 pairs.
-    ox = (o[ray, 0] - e[:, 0]) / e[:, 3]
-    oy = (o[ray, 1] - e[:, 1]) / e[:, 4]
-    oz = (o[ray, 2] - e[:, 2]) / e[:, 5]
-    dx = d[ray, 0] / e[:, 3]
-    dy = d[ray, 1] / e[:, 4]
-    dz = d[ray, 2] / e[:, 5]
+    # Component-wise on contiguous columns: the hot loop of wooded scenes (10^5 pairs).
+    cx, cy, cz, ix, iy, iz, lam = (c[idx] for c in scene.ell_cols)
+    ox = (o[:, 0][ray] - cx) * ix
+    oy = (o[:, 1][ray] - cy) * iy
+    oz = (o[:, 2][ray] - cz) * iz
+    dx = d[:, 0][ray] * ix
+    dy = d[:, 1][ray] * iy
+    dz = d[:, 2][ray] * iz
     a = dx * dx + dy * dy + dz * dz
     b = ox * dx + oy * dy + oz * dz
     disc = b * b - a * (ox * ox + oy * oy + oz * oz - 1.0)
@@ -1154,7 +1205,7 @@ def _hit_ellipsoids(scene: _Scene, ray, idx, o, d):
     root = np.sqrt(np.where(hit, disc, 0.0))
     t1 = (root - b) / a
     hit &= t1 > 0
-    return hit, np.maximum((-b - root) / a, 0.0), t1, e[:, 6]
+    return hit, np.maximum((-b - root) / a, 0.0), t1, lam
 
 
 def _scan(scene: _Scene, settings: SimSettings, rng: np.random.Generator, pos: np.ndarray,
@@ -1187,8 +1238,10 @@ def _scan(scene: _Scene, settings: SimSettings, rng: np.random.Generator, pos: n
     add(rays, t_g, GROUND, scene.terrain.ground_reflectance(gxs, gys), cos_g, 0.0)
 
     # Everything a pulse can meet lies between its origin and its ground hit.
-    prims = scene.grid.query(min(gxs.min(), o[0, 0], o[-1, 0]), max(gxs.max(), o[0, 0], o[-1, 0]),
-                             min(gys.min(), o[0, 1], o[-1, 1]), max(gys.max(), o[0, 1], o[-1, 1]))
+    prims = scene.grid.query(min(gxs.min(), o[0, 0], o[-1, 0]),
+                             max(gxs.max(), o[0, 0], o[-1, 0]),
+                             min(gys.min(), o[0, 1], o[-1, 1]),
+                             max(gys.max(), o[0, 1], o[-1, 1]))
     u = d[:, 0] / -d[:, 2]
     v = d[:, 1] / -d[:, 2]
     ray, prim = _pairs(scene, prims, pos, u, v)
@@ -1205,11 +1258,10 @@ def _scan(scene: _Scene, settings: SimSettings, rng: np.random.Generator, pos: n
         c = scene.cyl[index[m][hit]]
         add(ray[m][hit], t[hit], c[:, 5], c[:, 6], cos[hit], 0.0)
 
-    # Nearest solid hit per pulse (every pulse has one: the ground).
-    s_ray = np.concatenate(c_ray)
-    s_t = np.concatenate(c_t)
-    t_solid = np.full(n, np.inf)
-    np.minimum.at(t_solid, s_ray, s_t)
+    # Nearest solid hit per pulse (every pulse has one: the ground, the first entry).
+    t_solid = t_g.copy()
+    if len(c_ray) > 1:
+        np.minimum.at(t_solid, np.concatenate(c_ray[1:]), np.concatenate(c_t[1:]))
 
     m = kind == _SEG
     if m.any():
@@ -1224,15 +1276,19 @@ def _scan(scene: _Scene, settings: SimSettings, rng: np.random.Generator, pos: n
     if m.any():
         hit, t0, t1, lam = _hit_ellipsoids(scene, ray[m], index[m], o, d)
         r, t0, t1, lam = ray[m][hit], t0[hit], t1[hit], lam[hit]
-        t1 = np.minimum(t1, t_solid[r] - _PULSE_SEPARATION)
-        # Free path inside the foliage is exponential; up to three echoes per crown.
-        t = t0 + rng.exponential(1.0, len(r)) / lam
+        ts = t_solid[r]
+        t1 = np.minimum(t1, ts)
+        # Free path inside the foliage is exponential; up to three echoes per crown. An
+        # echo closer to the surface behind it than the pulse separation merges with it:
+        # low cover hides the ground there (the pulse stops).
+        t = t0 + rng.standard_exponential(len(r), dtype=np.float32) / lam
         for step in range(3):
-            ok = t < t1
-            add(r[ok], t[ok], _VEGETATION, _R_VEG, rng.uniform(0.3, 1.0, int(ok.sum())),
-                _ECHO_CONTINUE["veg"])
+            ok = np.flatnonzero(t < t1)
+            cont = np.where(t[ok] > ts[ok] - _PULSE_SEPARATION, 0.0, _ECHO_CONTINUE["veg"])
+            add(r[ok], t[ok], _VEGETATION, _R_VEG, rng.uniform(0.3, 1.0, len(ok)), cont)
             if step < 2:
-                t = t + _PULSE_SEPARATION + rng.exponential(1.0, len(r)) / lam
+                t = t + _PULSE_SEPARATION + rng.standard_exponential(
+                    len(r), dtype=np.float32) / lam
 
     all_ray = np.concatenate(c_ray)
     all_t = np.concatenate(c_t)
@@ -1252,8 +1308,9 @@ def _scan(scene: _Scene, settings: SimSettings, rng: np.random.Generator, pos: n
                                                 (all_ray, all_t, cls, refl, cos, cont))
         ts = t_solid[out_rays]
         above = rng.random(len(out_rays)) < 0.5
+        # Above: at least 5.6 m before the first surface; below: 4-20 m under the terrain.
         t_out = np.where(above, rng.uniform(0.15, 0.7, len(out_rays)) * np.maximum(ts - 8, 2),
-                         ts + rng.uniform(4.0, 20.0, len(out_rays)))
+                         t_g[out_rays] + rng.uniform(4.0, 20.0, len(out_rays)))
         all_ray = np.concatenate([all_ray, out_rays])
         all_t = np.concatenate([all_t, t_out])
         cls = np.concatenate([cls, np.full(len(out_rays), NOISE, np.uint8)])
@@ -1263,30 +1320,35 @@ def _scan(scene: _Scene, settings: SimSettings, rng: np.random.Generator, pos: n
 
     # One float key sorts by pulse, then range (ranges stay far below 4096 m).
     order = np.argsort(all_ray * 4096.0 + np.clip(all_t, 0.0, 4095.0))
-    all_ray, all_t, cls, refl, cos, cont = (a[order] for a in
-                                            (all_ray, all_t, cls, refl, cos, cont))
-    m = len(all_ray)
+    ray_s = all_ray[order]
+    m = len(ray_s)
     idx = np.arange(m)
-    first = np.r_[True, all_ray[1:] != all_ray[:-1]]
+    first = np.r_[True, ray_s[1:] != ray_s[:-1]]
     first_idx = np.maximum.accumulate(np.where(first, idx, 0))
     rank = idx - first_idx
-    stop = (rng.random(m) >= cont).astype(np.int64)
+    # A pulse goes on past a partial echo with probability `cont`; count the stops.
+    stop = (rng.random(m, dtype=np.float32) >= cont[order]).astype(np.int64)
     stops_before = np.cumsum(stop) - stop
-    alive = (stops_before - stops_before[first_idx] == 0) & (rank < settings.max_returns)
-    all_ray, all_t, cls, refl, cos, rank = (a[alive] for a in
-                                            (all_ray, all_t, cls, refl, cos, rank))
+    alive = (stops_before == stops_before[first_idx]) & (rank < settings.max_returns)
+    sel = np.flatnonzero(alive)
+    take = order[sel]     # one gather per array, straight from the unsorted candidates
+    all_ray, all_t, cls, refl, cos = (a[take] for a in (all_ray, all_t, cls, refl, cos))
+    rank = rank[sel]
     n_ret = np.bincount(all_ray, minlength=n)[all_ray]
 
-    all_t = all_t + rng.normal(0.0, settings.range_noise, len(all_t))
-    xyz = o[all_ray] + all_t[:, None] * d[all_ray]
-    veg = cls == _VEGETATION
-    if veg.any():
+    all_t = all_t + settings.range_noise * rng.standard_normal(len(all_t), dtype=np.float32)
+    xyz = np.empty((len(all_t), 3))
+    for axis in range(3):    # per column: o and d are column-major
+        xyz[:, axis] = o[:, axis][all_ray] + all_t * d[:, axis][all_ray]
+    veg = np.flatnonzero(cls == _VEGETATION)
+    if len(veg):
         hag = xyz[veg, 2] - scene.terrain.height(xyz[veg, 0], xyz[veg, 1])
         cls[veg] = np.where(hag < 0.5, LOW_VEG, np.where(hag < 2.0, MEDIUM_VEG, HIGH_VEG))
     # Intensity: reflectance x incidence, energy shared by the echoes of a pulse.
     energy = np.where(n_ret > 1, 0.8 * 0.85 ** rank, 1.0)
     inten = refl * (0.35 + 0.65 * np.clip(cos, 0.0, 1.0)) * energy
-    inten = np.clip(inten + rng.normal(0.0, 0.015, len(inten)), 0.002, 1.0)
+    inten = inten + 0.015 * rng.standard_normal(len(inten), dtype=np.float32)
+    inten = np.clip(inten, 0.002, 1.0)
     return {"xyz": xyz, "intensity": (inten * INTENSITY_SCALE).astype(np.float32),
             "return_number": (rank + 1).astype(np.uint8),
             "number_of_returns": n_ret.astype(np.uint8), "classification": cls}, n

@@ -48,7 +48,7 @@ class DemBuilderNode(PipelineNode):
             self.pubs[topic].publish(out)
 
     def _save_dem(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        from lidar_obstacles.io.geotiff import write_geotiff
+        from lidar_obstacles.io.geotiff import parse_crs, write_geotiff
 
         grid = self.stage.grid()
         path = self.cfg.export.path
@@ -56,7 +56,8 @@ class DemBuilderNode(PipelineNode):
             response.success, response.message = False, "no DEM yet: no ground received"
             return response
         try:
-            write_geotiff(path, grid, crs=self.cfg.export.crs)
+            epsg, wkt = parse_crs(self.cfg.export.crs)
+            write_geotiff(path, grid, crs_epsg=epsg, crs_wkt=wkt)
         except (LidarObstaclesError, OSError) as exc:
             response.success, response.message = False, f"cannot write {path}: {exc}"
             return response

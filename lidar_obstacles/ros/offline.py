@@ -60,15 +60,17 @@ def simulate(out: Path, *, scene: str, seed: int, duration: float, frame: str,
     settings = SimSettings(scene=scene, seed=seed, duration=duration, rate=rate,
                            points_per_frame=points_per_frame, frame=frame)
     cloud_frame = "map" if frame == "map" else "lidar"
-    n_frames = int(round(duration * rate))
+    n_frames = int(np.ceil(duration * rate - 1e-9))  # frame k is stamped k / rate
     total = 0
     with BagWriter(out, storage=storage) as bag:
         bag.add_topic("/points", POINTCLOUD2)
         bag.add_topic("/odom", ODOMETRY)
         for f in _progress(simulate_flight(settings), n_frames, "simulate"):
             stamp_ns = int(round(f.stamp * 1e9))
+            # Odometry twist is in the child frame; the simulator gives it in the map frame.
+            rot = Pose(stamp_ns, f.position, f.orientation, "map").rotation()
             odom = messages.odometry(stamp_ns, "map", cloud_frame, f.position, f.orientation,
-                                     f.velocity)
+                                     rot.T @ f.velocity)
             bag.write("/odom", stamp_ns, _serialize(odom))
             hdr = messages.header(stamp_ns, cloud_frame)
             bag.write("/points", stamp_ns, _serialize(messages.cloud(f.points, hdr)))
@@ -319,7 +321,7 @@ def export_dem(src: Path, out: Path, *, topic: str | None = None,
                params_file: Path | None = None, crs: str | None = None) -> dict:
     """Build the DEM of a whole bag offline; write a GeoTIFF and a hillshade PNG beside it."""
     from lidar_obstacles.config import replace
-    from lidar_obstacles.io.geotiff import write_geotiff, write_hillshade_png
+    from lidar_obstacles.io.geotiff import parse_crs, write_geotiff, write_hillshade_png
 
     _, dem_cfg = load_configs(params_file)
     if params_file is None:
@@ -335,7 +337,8 @@ def export_dem(src: Path, out: Path, *, topic: str | None = None,
     if grid is None or not np.isfinite(grid.elevation).any():
         raise BagError(f"no ground found in {src}: cannot build a DEM")
     crs_text = crs or dem_cfg.export.crs or bag_crs
-    write_geotiff(out, grid, crs=crs_text)
+    epsg, wkt = parse_crs(crs_text)
+    write_geotiff(out, grid, crs_epsg=epsg, crs_wkt=wkt)
     png = out.with_name(out.stem + "_hillshade.png")
     write_hillshade_png(png, grid)
     return {"geotiff": str(out), "hillshade": str(png), "crs": crs_text,

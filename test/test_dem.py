@@ -1,0 +1,214 @@
+"""DEM grids, thinning, ground source and the rolling DEM (lidar_obstacles.core.dem)."""
+from __future__ import annotations
+
+import sys
+import types
+
+import numpy as np
+import pytest
+
+from conftest import data_file
+from lidar_obstacles.config import DemBuilderConfig, ThinningConfig, replace
+from lidar_obstacles.core.dem import (RollingDem, accuracy, build_dem, select_ground,
+                                      thin, tin_curvature)
+from lidar_obstacles.errors import CloudFormatError, ConfigError
+
+
+def _cfg(**updates) -> DemBuilderConfig:
+    return replace(DemBuilderConfig(), updates)
+
+
+def _plane_points(lo=0.0, hi=40.0, step=0.25, hole=None):
+    """Points on z = 2 + 0.1 x + 0.05 y on a regular lattice (cell means = plane at the
+    cells' mean positions), optionally without a disc hole (cx, cy, r)."""
+    g = np.arange(lo + step / 2, hi, step)
+    xy = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)
+    if hole is not None:
+        xy = xy[np.hypot(xy[:, 0] - hole[0], xy[:, 1] - hole[1]) > hole[2]]
+    return np.column_stack([xy, 2.0 + 0.1 * xy[:, 0] + 0.05 * xy[:, 1]])
+
+
+def plane_at(xy):
+    return 2.0 + 0.1 * xy[..., 0] + 0.05 * xy[..., 1]
+
+
+def test_build_dem_plane_exact_with_measured_and_filled_cells():
+    pts = _plane_points(hole=(20.0, 20.0, 5.0))
+    grid = build_dem(pts, cfg=_cfg(**{"dem.resolution": 1.0, "dem.interpolation": "tin"}))
+    assert grid.elevation.dtype == np.float32 and grid.interpolated.dtype == np.uint8
+    assert grid.count.dtype == np.uint32 and grid.shape == (40, 40)
+    assert np.array_equal(grid.origin, [0.0, 0.0]) and grid.resolution == 1.0
+    centres = grid.cell_centres()
+    full = grid.count == 16  # 4 x 4 lattice points: mean position = cell centre
+    filled = grid.interpolated == 1
+    assert filled.sum() > 50 and np.all(grid.count[filled] == 0)
+    assert np.all(full | filled | (grid.count > 0))
+    assert np.allclose(grid.elevation[full | filled], plane_at(centres[full | filled]),
+                       atol=1e-4)
+    # a cell cut by the hole's rim is the mean of its points, off-centre by < half a cell
+    assert np.allclose(grid.elevation, plane_at(centres), atol=0.1 * 0.5)
+    assert grid.reason == ""
+
+
+def test_origin_aligned_and_rows_are_y():
+    pts = np.array([[10.3, 20.7, 1.0], [13.9, 20.2, 2.0], [10.1, 24.6, 3.0], [13.2, 24.9, 4.0]])
+    grid = build_dem(pts, cfg=_cfg(**{"dem.resolution": 2.0}))
+    assert np.array_equal(grid.origin, [10.0, 20.0])
+    assert grid.shape == (3, 2)  # y 20..26 -> 3 rows, x 10..14 -> 2 cols
+    assert grid.elevation[0, 0] == 1.0 and grid.elevation[0, 1] == 2.0
+    assert grid.elevation[2, 0] == 3.0 and grid.elevation[2, 1] == 4.0
+
+
+def test_fill_distance_limits_interpolation():
+    left = _plane_points(0, 10, 0.5)
+    right = left + [60.0, 0.0, 0.0]
+    right[:, 2] = plane_at(right[:, :2])
+    pts = np.vstack([left, right])
+    grid = build_dem(pts, cfg=_cfg(**{"dem.interpolation": "idw", "dem.fill_distance": 5.0}))
+    col_x = grid.origin[0] + (np.arange(grid.shape[1]) + 0.5) * grid.resolution
+    middle = (col_x > 16) & (col_x < 54)
+    assert np.isnan(grid.elevation[:, middle]).all()
+    near = (col_x > 10) & (col_x < 14.5)
+    assert np.isfinite(grid.elevation[:, near]).all()
+    assert (grid.interpolated[:, near] == 1).all()
+
+
+@pytest.mark.parametrize("method", ["tin", "idw", "kriging", "rbf", "rbfnn"])
+def test_degenerate_ground_gives_reason_not_crash(method):
+    cfg = _cfg(**{"dem.interpolation": method})
+    empty = build_dem(np.zeros((0, 3)), cfg=cfg)
+    assert empty.shape == (0, 0) and "no ground" in empty.reason
+    two = build_dem(np.array([[0.5, 0.5, 1.0], [3.5, 0.5, 2.0]]), cfg=cfg)
+    assert "only 2" in two.reason and (two.interpolated == 0).all()
+    assert np.nansum(two.count) == 2
+    line = np.column_stack([np.linspace(0, 20, 50), np.linspace(0, 10, 50), np.ones(50)])
+    on_line = build_dem(line, cfg=cfg)
+    assert "collinear" in on_line.reason and (on_line.interpolated == 0).all()
+    same = build_dem(np.tile([[5.0, 5.0, 3.0]], (10, 1)), cfg=cfg)
+    assert same.shape == (1, 1) and same.elevation[0, 0] == 3.0 and "only 1" in same.reason
+    flat = _plane_points(0, 10, 0.5, hole=(5, 5, 2))
+    flat[:, 2] = 7.0
+    flat_grid = build_dem(flat, cfg=cfg)
+    assert "flat" in flat_grid.reason
+    assert np.allclose(flat_grid.elevation[np.isfinite(flat_grid.elevation)], 7.0)
+
+
+def test_build_dem_rejects_huge_grids_and_bad_shapes():
+    with pytest.raises(ConfigError):
+        build_dem(np.array([[0.0, 0.0, 0.0], [1e5, 1e5, 0.0]]), cfg=_cfg())
+    with pytest.raises(CloudFormatError):
+        build_dem(np.zeros((5, 2)), cfg=_cfg())
+
+
+def test_grid_sample_bilinear_and_accuracy():
+    grid = build_dem(_plane_points(), cfg=_cfg())
+    xy = np.array([[5.2, 7.9], [30.0, 12.25], [100.0, 0.0]])
+    got = grid.sample(xy)
+    assert np.allclose(got[:2], plane_at(xy[:2]), atol=1e-4) and np.isnan(got[2])
+    rmse, r2, n = accuracy(np.array([1.0, 2.0, 3.0, np.nan]), np.array([1.0, 2.0, 4.0, 1.0]))
+    assert n == 3 and rmse == pytest.approx(np.sqrt(1 / 3)) and r2 == pytest.approx(1 - 9 / 42)
+
+
+def test_thinning_counts_and_disjoint():
+    pts = _plane_points(0, 20, 0.5)
+    t = thin(pts, cfg=ThinningConfig(keep=0.2, check_points=100, seed=1))
+    assert len(t.check) == 100 and len(t.keep) == round(0.2 * (len(pts) - 100))
+    assert not np.intersect1d(t.keep, t.check).size
+    again = thin(pts, cfg=ThinningConfig(keep=0.2, check_points=100, seed=1))
+    assert np.array_equal(t.keep, again.keep)
+
+
+def test_curvature_thinning_keeps_more_where_terrain_bends():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 40, (8000, 2))
+    z = np.where(xy[:, 0] < 20, 0.0, 0.0)
+    ditch = np.abs(xy[:, 0] - 30) < 3
+    z[ditch] = -0.3 * (9 - (xy[ditch, 0] - 30) ** 2)  # a parabolic ditch
+    pts = np.column_stack([xy, z])
+    interior_flat = (xy[:, 0] > 5) & (xy[:, 0] < 20) & (xy[:, 1] > 5) & (xy[:, 1] < 35)
+    assert tin_curvature(pts)[interior_flat].max() < 1e-9
+    cfg = ThinningConfig(method="curvature", keep=0.2, check_points=0, seed=2)
+    kept = thin(pts, cfg=cfg).keep
+    share_ditch = np.isin(np.flatnonzero(ditch), kept).mean()
+    share_flat = np.isin(np.flatnonzero(~ditch), kept).mean()
+    assert share_ditch > 1.5 * share_flat
+
+
+def test_detector_ground_source_called_by_interface(monkeypatch):
+    calls = {}
+
+    def classify_ground(xyz, *, tiling, ground, tin, ransac, context_xyz=None, rng=None):
+        calls["kw"] = (tiling, ground, tin, ransac, context_xyz, rng)
+        return types.SimpleNamespace(ground=xyz[:, 2] < 1.0,
+                                     height_above_ground=np.zeros(len(xyz)))
+
+    fake = types.ModuleType("lidar_obstacles.core.ground")
+    fake.classify_ground = classify_ground
+    monkeypatch.setitem(sys.modules, "lidar_obstacles.core.ground", fake)
+    xyz = np.array([[0.0, 0.0, 0.5], [1.0, 0.0, 5.0], [0.0, 1.0, 0.2]])
+    cfg = _cfg(**{"dem.ground_source": "detector"})
+    found = select_ground(xyz, cfg=cfg)
+    assert found.source == "detector" and found.ground.tolist() == [True, False, True]
+    assert calls["kw"][0] is cfg.tiling and calls["kw"][4] is None
+
+
+def test_rolling_dem_window_follows_vehicle_and_is_bounded():
+    cfg = _cfg(**{"dem.extent": 20.0, "dem.resolution": 1.0, "dem.interpolation": "idw"})
+    dem = RollingDem(cfg)
+    assert dem.snapshot().shape == (0, 0)
+    pts = _plane_points(0, 100, 0.5)
+    for x0 in range(0, 80, 10):
+        strip = pts[(pts[:, 0] >= x0) & (pts[:, 0] < x0 + 15)]
+        dem.update(strip, np.array([x0 + 7.5, 50.0]), float(x0))
+        snap = dem.snapshot()
+        assert snap.shape == (20, 20)  # bounded: the window never grows
+        assert snap.origin[0] == x0 + 7.5 - 10 - 0.5 or snap.origin[0] % 1.0 == 0
+    assert dem.stamp == 70.0
+    snap = dem.snapshot()
+    measured = snap.count > 0
+    assert measured.mean() > 0.5 and np.isfinite(snap.elevation).all()
+    truth = plane_at(snap.cell_centres())
+    assert np.allclose(snap.elevation[measured], truth[measured], atol=1e-4)
+    assert np.allclose(snap.elevation[~measured], truth[~measured], atol=0.5)  # IDW
+
+
+def test_rolling_dem_refines_cells_and_fills_gaps():
+    cfg = _cfg(**{"dem.extent": 0.0, "dem.resolution": 1.0, "dem.interpolation": "tin"})
+    dem = RollingDem(cfg)
+    a = _plane_points(0, 30, 0.5, hole=(15, 15, 4))
+    dem.update(a, None, 1.0)
+    first = dem.snapshot()
+    gap = first.interpolated == 1
+    assert gap.sum() > 20
+    assert np.allclose(first.elevation[gap], plane_at(first.cell_centres()[gap]), atol=1e-3)
+    # the gap measured later: those cells become measured, counts add up
+    b = _plane_points(0, 30, 0.5)
+    b = b[np.hypot(b[:, 0] - 15, b[:, 1] - 15) <= 4]
+    dem.update(b + [0.0, 0.0, 1.0], None, 2.0)  # 1 m higher: the mean moves
+    second = dem.snapshot()
+    assert (second.interpolated[gap] == 0).all() and (second.count[gap] > 0).all()
+    # the whole-flight grid grows when data arrive elsewhere
+    far = _plane_points(100, 110, 0.5)
+    dem.update(far, None, 3.0)
+    third = dem.snapshot()
+    assert third.origin[0] <= 0 and third.origin[0] + third.shape[1] >= 110
+    assert third.count.sum() == len(a) + len(b) + len(far)
+
+
+def test_rolling_dem_whole_flight_respects_max_cells():
+    cfg = _cfg(**{"dem.extent": 0.0, "dem.max_cells": 2500, "dem.interpolation": "idw"})
+    dem = RollingDem(cfg)
+    for x0 in (0.0, 200.0, 400.0):
+        dem.update(_plane_points(x0, x0 + 20, 1.0), None, x0)
+        assert dem.snapshot().elevation.size <= 2500
+
+
+def test_real_isprs_dem_from_reference_ground():
+    from lidar_obstacles.io.las import read_las
+
+    cloud = read_las(data_file("isprs/samp52-utm.laz"))
+    ground = cloud.xyz[cloud.points["classification"] == 2]
+    t = thin(ground, cfg=ThinningConfig(keep=0.8, check_points=100, seed=0))
+    grid = build_dem(ground[t.keep], cfg=_cfg(**{"dem.resolution": 2.0}))
+    rmse, r2, n = accuracy(grid.sample(ground[t.check, :2]), ground[t.check, 2])
+    assert n >= 90 and rmse < 1.0 and r2 > 0.99

@@ -1,0 +1,97 @@
+"""GeoTIFF and hillshade export (lidar_obstacles.io.geotiff)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lidar_obstacles.core.dem import DemGrid, empty_grid
+from lidar_obstacles.errors import ConfigError
+from lidar_obstacles.io.geotiff import (ExportError, hillshade, parse_crs, read_geotiff,
+                                        write_geotiff, write_hillshade_png)
+
+
+def _grid():
+    elevation = np.arange(12, dtype=np.float32).reshape(3, 4)
+    elevation[0, 0] = np.nan
+    return DemGrid(elevation, np.zeros((3, 4), np.uint8), np.ones((3, 4), np.uint32),
+                   np.array([512000.0, 5403000.0]), 2.0)
+
+
+def test_round_trip_keeps_values_transform_and_crs(tmp_path):
+    grid = _grid()
+    path = write_geotiff(tmp_path / "dem.tif", grid, crs_epsg=32632)
+    back = read_geotiff(path)
+    assert np.array_equal(back.elevation, grid.elevation, equal_nan=True)
+    assert back.elevation.dtype == np.float32
+    assert np.array_equal(back.origin, grid.origin) and back.resolution == 2.0
+    assert back.epsg == 32632 and back.nodata == "nan"
+    assert [p.name for p in tmp_path.iterdir()] == ["dem.tif"]  # no temp file left
+
+
+def test_file_is_north_up(tmp_path):
+    import tifffile
+
+    path = write_geotiff(tmp_path / "dem.tif", _grid(), crs_epsg=None, crs_wkt="")
+    raw = tifffile.imread(path)
+    assert raw[0].tolist() == [8.0, 9.0, 10.0, 11.0]  # first file row = top = largest y
+    with tifffile.TiffFile(path) as tif:
+        tags = {t.code: t.value for t in tif.pages[0].tags.values()}
+    assert tuple(tags[33922])[3:5] == (512000.0, 5403006.0)  # upper-left corner
+    assert tuple(tags[33550])[:2] == (2.0, 2.0)
+
+
+def test_wkt_citation_and_geographic_code(tmp_path):
+    wkt = 'PROJCS["Amersfoort / RD New",AUTHORITY["EPSG","28992"]]'
+    back = read_geotiff(write_geotiff(tmp_path / "a.tif", _grid(), crs_epsg=28992,
+                                      crs_wkt=wkt))
+    assert back.epsg == 28992 and back.citation == wkt
+    assert read_geotiff(write_geotiff(tmp_path / "b.tif", _grid(), crs_epsg=4326)).epsg == 4326
+
+
+def test_gdal_reads_transform_and_nodata(tmp_path):
+    rasterio = pytest.importorskip("rasterio")
+    path = write_geotiff(tmp_path / "dem.tif", _grid(), crs_epsg=32632)
+    with rasterio.open(path) as ds:
+        assert tuple(ds.transform)[:6] == (2.0, 0.0, 512000.0, 0.0, -2.0, 5403006.0)
+        assert np.isnan(ds.nodata)
+        assert ds.crs.to_epsg() == 32632
+        band = ds.read(1)
+        assert band[2, 1] == 1.0 and np.isnan(band[2, 0])
+        # the centre of DemGrid cell (row 0, col 1) maps back to file row 2, col 1
+        assert ds.index(512003.0, 5403001.0) == (2, 1)
+
+
+def test_errors_leave_nothing_behind(tmp_path):
+    with pytest.raises(ExportError):
+        write_geotiff(tmp_path / "missing" / "dem.tif", _grid(), crs_epsg=None)
+    with pytest.raises(ExportError, match="empty"):
+        write_geotiff(tmp_path / "dem.tif", empty_grid(1.0, "no ground points"), crs_epsg=None)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_parse_crs():
+    assert parse_crs("EPSG:32632") == (32632, "")
+    assert parse_crs("epsg:28992") == (28992, "")
+    assert parse_crs("") == (None, "")
+    assert parse_crs('GEOGCS["WGS 84"]') == (None, 'GEOGCS["WGS 84"]')
+    with pytest.raises(ConfigError):
+        parse_crs("UTM 32")
+
+
+def test_hillshade_png(tmp_path):
+    from PIL import Image
+
+    y, x = np.mgrid[0:30, 0:40].astype(float)
+    grid = DemGrid((0.5 * x).astype(np.float32), np.zeros((30, 40), np.uint8),
+                   np.ones((30, 40), np.uint32), np.zeros(2), 1.0)
+    shade = hillshade(grid.elevation, 1.0)
+    flat = hillshade(np.zeros((3, 3)), 1.0)[0, 0]
+    # light from the north-west: a slope facing west (rising eastwards) is lit more than
+    # flat ground, one facing east less; rows grow northwards, so z = 0.5 row rises to the
+    # north, faces south, away from the light
+    assert np.allclose(shade, shade[0, 0]) and shade[0, 0] > flat
+    assert hillshade(-grid.elevation, 1.0)[0, 0] < flat
+    assert hillshade(0.5 * y, 1.0)[0, 0] < flat < hillshade(-0.5 * y, 1.0)[0, 0]
+    path = write_hillshade_png(tmp_path / "dem.png", grid)
+    with Image.open(path) as img:
+        assert img.size == (40, 30) and img.mode == "RGBA"

@@ -1,0 +1,180 @@
+"""Interpolators with known answers (lidar_obstacles.core.interpolate)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lidar_obstacles.config import KrigingConfig, RbfConfig, RbfnnConfig
+from lidar_obstacles.core.interpolate import (METHODS, degeneracy, fit_variogram, interpolate,
+                                              merge_coincident, train_rbfnn)
+from lidar_obstacles.errors import CloudFormatError
+
+
+def _samples(n=1500, seed=0, size=50.0):
+    rng = np.random.default_rng(seed)
+    return rng.uniform(0, size, (n, 2))
+
+
+def _queries(lo=10.0, hi=40.0, step=1.3):
+    g = np.arange(lo, hi, step)
+    return np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)
+
+
+def plane(p):
+    return 3.0 + 0.2 * p[:, 0] - 0.1 * p[:, 1]
+
+
+def paraboloid(p):
+    return 0.01 * ((p[:, 0] - 25) ** 2 + (p[:, 1] - 25) ** 2)
+
+
+@pytest.mark.parametrize("method", ["tin", "rbf"])
+def test_plane_is_exact_for_linear_methods(method):
+    xy, q = _samples(), _queries()
+    out = interpolate(method, xy, plane(xy), q)
+    assert np.allclose(out, plane(q), atol=1e-6)
+
+
+@pytest.mark.parametrize("method,tol", [("idw", 0.1), ("kriging", 0.01), ("rbfnn", 0.2)])
+def test_plane_is_close_for_the_others(method, tol):
+    xy, q = _samples(), _queries()
+    out = interpolate(method, xy, plane(xy), q, rbfnn_cfg=RbfnnConfig(goal=1e-3))
+    assert np.sqrt(np.mean((out - plane(q)) ** 2)) < tol
+
+
+@pytest.mark.parametrize("method,tol", [("tin", 0.02), ("idw", 0.1), ("kriging", 0.02),
+                                        ("rbf", 0.002), ("rbfnn", 0.1)])
+def test_paraboloid_small_error(method, tol):
+    xy, q = _samples(), _queries()
+    out = interpolate(method, xy, paraboloid(xy), q, rbfnn_cfg=RbfnnConfig(goal=1e-3,
+                                                                           spread=0.5))
+    rmse = np.sqrt(np.mean((out - paraboloid(q)) ** 2))
+    assert rmse < tol, rmse
+
+
+@pytest.mark.parametrize("method", ["tin", "idw"])
+def test_step_has_no_overshoot(method):
+    xy = _samples(2000, seed=1)
+    z = np.where(xy[:, 0] < 25, 0.0, 2.0)
+    out = interpolate(method, xy, z, _queries())
+    assert out.min() >= -1e-9 and out.max() <= 2.0 + 1e-9
+    far = _queries()
+    assert np.allclose(out[far[:, 0] < 20], 0.0) and np.allclose(out[far[:, 0] > 30], 2.0)
+
+
+def test_hole_filled_inside_and_nan_outside_hull_for_tin():
+    xy = _samples(3000, seed=2)
+    hole = np.hypot(xy[:, 0] - 25, xy[:, 1] - 25) < 8
+    xy = xy[~hole]
+    q = np.array([[25.0, 25.0], [22.0, 27.0], [80.0, 80.0], [-5.0, 10.0]])
+    for method in METHODS:
+        out = interpolate(method, xy, plane(xy), q, rbfnn_cfg=RbfnnConfig(goal=1e-4))
+        if method == "tin":
+            assert np.allclose(out[:2], plane(q[:2]), atol=1e-9)
+            assert np.isnan(out[2:]).all()
+        else:
+            assert np.isfinite(out).all()
+            # IDW flattens towards the rim's mean and ordinary kriging reverts to the mean
+            # beyond its variogram range; RBFs follow the plane
+            tol = 0.1 if method in ("rbf", "rbfnn") else 1.0
+            assert np.allclose(out[:2], plane(q[:2]), atol=tol), (method, out[:2])
+
+
+def test_exact_at_samples():
+    xy = _samples(400, seed=3)
+    z = paraboloid(xy) + np.random.default_rng(3).normal(0, 0.1, len(xy))
+    for method in ("tin", "idw", "kriging", "rbf"):
+        assert np.allclose(interpolate(method, xy, z, xy[:50]), z[:50], atol=1e-6), method
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_degenerate_inputs_never_raise(method):
+    q = _queries(0, 10, 2.5)
+    empty = interpolate(method, np.zeros((0, 2)), np.zeros(0), q)
+    assert empty.shape == (len(q),) and np.isnan(empty).all()
+    one = interpolate(method, np.array([[1.0, 1.0]]), np.array([5.0]), q)
+    two = interpolate(method, np.array([[1.0, 1.0], [3.0, 1.0]]), np.array([5.0, 5.0]), q)
+    line_xy = np.column_stack([np.linspace(0, 10, 20), np.linspace(0, 5, 20)])
+    line = interpolate(method, line_xy, line_xy[:, 0], q)
+    same = interpolate(method, np.ones((5, 2)), np.arange(5.0), q)  # 5 coincident points
+    if method == "tin":
+        for out in (one, two, line, same):
+            assert np.isnan(out).all()
+    else:
+        assert np.allclose(one, 5.0) and np.allclose(two, 5.0) and np.allclose(same, 2.0)
+        assert np.isfinite(line).all()
+
+
+def test_degeneracy_reasons_and_merging():
+    assert "only 2" in degeneracy(np.zeros((2, 2)))
+    assert "collinear" in degeneracy(np.column_stack([np.arange(5.0), 2 * np.arange(5.0)]))
+    assert degeneracy(np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])) == ""
+    xy, z = merge_coincident(np.array([[0.0, 0.0], [0.0, 0.0], [1.0, 1.0], [np.nan, 0.0]]),
+                             np.array([1.0, 3.0, 5.0, 7.0]))
+    assert len(xy) == 2 and sorted(z) == [2.0, 5.0]
+
+
+def test_flat_plane_gives_flat_surface():
+    xy = _samples(300)
+    for method in METHODS:
+        out = interpolate(method, xy, np.full(len(xy), 7.0), _queries())
+        assert np.allclose(out[np.isfinite(out)], 7.0), method
+
+
+def test_bad_input_raises_typed_errors():
+    with pytest.raises(CloudFormatError):
+        interpolate("spline", np.zeros((3, 2)), np.zeros(3), np.zeros((1, 2)))
+    with pytest.raises(CloudFormatError):
+        interpolate("tin", np.zeros((3, 3)), np.zeros(3), np.zeros((1, 2)))
+    with pytest.raises(CloudFormatError):
+        interpolate("tin", np.zeros((3, 2)), np.zeros(4), np.zeros((1, 2)))
+
+
+def test_variogram_fit_is_sensible():
+    xy = _samples(2000, seed=4)
+    z = paraboloid(xy)
+    for model in ("spherical", "exponential", "gaussian", "linear"):
+        vg = fit_variogram(xy, z, model=model, neighbours=16)
+        h = np.array([0.0, 1.0, 5.0, 20.0])
+        g = vg(h)
+        assert g[0] == 0 and np.all(np.diff(g) >= -1e-12), model
+        assert vg.nugget < 0.1 * max(g[-1], 1e-9), model
+
+
+@pytest.mark.parametrize("variogram", ["spherical", "exponential", "gaussian", "linear"])
+def test_kriging_variograms_all_solve(variogram):
+    xy, q = _samples(), _queries()
+    out = interpolate("kriging", xy, paraboloid(xy), q,
+                      kriging_cfg=KrigingConfig(variogram=variogram, neighbours=12))
+    assert np.sqrt(np.mean((out - paraboloid(q)) ** 2)) < 0.02
+
+
+@pytest.mark.parametrize("kernel", ["thin_plate_spline", "multiquadric", "gaussian", "linear",
+                                    "cubic"])
+def test_rbf_kernels_all_solve(kernel):
+    xy, q = _samples(), _queries()
+    out = interpolate("rbf", xy, paraboloid(xy), q, rbf_cfg=RbfConfig(kernel=kernel,
+                                                                      neighbours=24))
+    assert np.sqrt(np.mean((out - paraboloid(q)) ** 2)) < 0.05
+
+
+def test_rbfnn_reaches_its_goal_on_a_smooth_surface():
+    xy = _samples(3000, seed=5)
+    z = 2.0 * np.sin(xy[:, 0] / 10.0) + np.cos(xy[:, 1] / 8.0)
+    net = train_rbfnn(xy, z, goal=1e-3, spread=0.5, max_neurons=300)
+    assert net.mse <= 1e-3 and net.neurons < 300
+    pred = net.predict(xy)
+    assert np.mean((pred - z) ** 2) == pytest.approx(net.mse, rel=1e-6, abs=1e-9)
+    capped = train_rbfnn(xy, z, goal=1e-12, spread=0.5, max_neurons=5)
+    assert capped.neurons == 5 and capped.mse > 1e-3
+
+
+def test_rbfnn_uses_intensity_when_asked():
+    xy = _samples(1000, seed=6)
+    inten = np.where(xy[:, 0] > 25, 100.0, 10.0)
+    z = 0.01 * inten + 0.0 * xy[:, 1]
+    q = np.array([[10.0, 10.0], [40.0, 10.0]])
+    cfg = RbfnnConfig(goal=1e-4, use_intensity=True)
+    out = interpolate("rbfnn", xy, z, q, rbfnn_cfg=cfg, intensity=inten,
+                      query_intensity=np.array([10.0, 100.0]))
+    assert out == pytest.approx([0.1, 1.0], abs=0.05)
