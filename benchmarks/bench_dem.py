@@ -8,7 +8,8 @@
    Files with more ground than --max-ground are cut to the disc of that many ground points
    around their centre (same density, bounded time). PyKrige computes all pairwise
    distances for its variogram, so it gets at most 10 000 of the kept points.
-2. The default interpolator must not be worse than the best of tin and idw on any file.
+2. The default interpolator must not be worse than the best of tin and idw on any file
+   (checked with the paper's 100 check points and again with 1000).
 3. Speed: kriging and rbf from 10 000 real ground points into a 200 x 200 grid against
    PyKrige and scipy in the same run; rbfnn training on 7 000 points.
 4. K-means: elbow sweep k = 1..10 with 10 restarts on 100 000 real intensities, ours
@@ -40,8 +41,9 @@ sys.path.insert(0, str(REPO))
 from lidar_obstacles.config import (DemBuilderConfig, KmeansConfig, RbfnnConfig,  # noqa: E402
                                     ThinningConfig, replace)
 from lidar_obstacles.core.dem import RollingDem, accuracy, build_dem, select_ground, thin  # noqa: E402
-from lidar_obstacles.core.interpolate import METHODS, interpolate, train_rbfnn  # noqa: E402
-from lidar_obstacles.core.kmeans import elbow_kmeans, kmeans_ground, standardise  # noqa: E402
+from lidar_obstacles.core.interpolate import (METHODS, interpolate,  # noqa: E402
+                                              merge_coincident, train_rbfnn)
+from lidar_obstacles.core.kmeans import elbow_kmeans, standardise  # noqa: E402
 from lidar_obstacles.io.geotiff import write_hillshade_png  # noqa: E402
 from lidar_obstacles.io.las import read_las  # noqa: E402
 
@@ -106,10 +108,14 @@ def protocol(files: list[str], max_ground: int, cfg: DemBuilderConfig) -> list[d
                 runs["rbfnn+I"] = timed(lambda: interpolate(
                     "rbfnn", train[:, :2], train[:, 2], check[:, :2], rbfnn_cfg=icfg,
                     intensity=gi[t.keep], query_intensity=gi[t.check]))
+            # The anchors get the coincident samples merged as ours do (ISPRS has
+            # repeated XY, which makes scipy's RBF system singular).
+            mxy, mz = merge_coincident(train[:, :2], train[:, 2])
             runs["scipy_rbf64"] = timed(lambda: RBFInterpolator(
-                train[:, :2], train[:, 2], neighbors=64)(check[:, :2]))
-            sub = train if len(train) <= 10000 else train[
-                np.random.default_rng(0).choice(len(train), 10000, replace=False)]
+                mxy, mz, neighbors=64)(check[:, :2]))
+            merged = np.column_stack([mxy, mz])
+            sub = merged if len(merged) <= 10000 else merged[
+                np.random.default_rng(0).choice(len(merged), 10000, replace=False)]
 
             def pykrige():
                 ok = OrdinaryKriging(sub[:, 0], sub[:, 1], sub[:, 2], variogram_model="spherical")
@@ -125,6 +131,25 @@ def protocol(files: list[str], max_ground: int, cfg: DemBuilderConfig) -> list[d
             print(f"  protocol {rel} keep={keep}: " + ", ".join(
                 f"{r['method']} {r['rmse']:.3f}" for r in rows[-len(runs):]), file=sys.stderr,
                 flush=True)
+    return rows
+
+
+def stable_protocol(files: list[str], max_ground: int, cfg: DemBuilderConfig) -> list[dict]:
+    """The protocol with 1000 check points (RMSE over 100 is dominated by a few points on
+    the steep ISPRS sites): tin, idw, kriging and rbf only."""
+    rows = []
+    for rel in files:
+        cloud, gmask, _ = load(rel)
+        xyz, _ = crop(cloud.xyz[gmask], max_ground)
+        for keep in (0.2, 0.8):
+            t = thin(xyz, cfg=ThinningConfig(keep=keep, check_points=1000, seed=0))
+            train, check = xyz[t.keep], xyz[t.check]
+            for method in ("tin", "idw", "kriging", "rbf"):
+                pred = interpolate(method, train[:, :2], train[:, 2], check[:, :2],
+                                   kriging_cfg=cfg.kriging, rbf_cfg=cfg.rbf)
+                rmse, r2, n = accuracy(pred, check[:, 2])
+                rows.append(dict(file=rel, keep=keep, method=method, rmse=rmse, r2=r2,
+                                 n_check=n))
     return rows
 
 
@@ -337,6 +362,9 @@ def main() -> int:
     print("protocol...", file=sys.stderr, flush=True)
     proto = protocol(files, 12000 if quick else 50000, cfg)
     checks = default_check(proto, cfg.dem.interpolation)
+    print("protocol with 1000 check points...", file=sys.stderr, flush=True)
+    stable = stable_protocol(files, 12000 if quick else 50000, cfg)
+    checks_stable = default_check(stable, cfg.dem.interpolation)
     print("speed...", file=sys.stderr, flush=True)
     spd = speed(cfg, 1 if quick else 3)
     print("kmeans...", file=sys.stderr, flush=True)
@@ -367,6 +395,8 @@ def main() -> int:
     print(table(isprs_mean, ["keep", "method", "samples", "rmse", "r2", "seconds"]))
     print(f"\n## Default interpolator (`{cfg.dem.interpolation}`) vs best of tin/idw\n")
     print(table(checks, ["file", "keep", "default_rmse", "best_tin_idw", "ok"]))
+    print("\nThe same with 1000 check points (a stabler estimate):\n")
+    print(table(checks_stable, ["file", "keep", "default_rmse", "best_tin_idw", "ok"]))
     print("\n## Speed: 10 000 AHN4 ground points -> 200 x 200 grid (best of repeats, s)\n")
     print(table([{"what": k, "value": v} for k, v in spd.items()], ["what", "value"]))
     print("\n## K-means elbow sweep k = 1..10, 10 restarts, AHN4 intensity\n")
@@ -375,11 +405,13 @@ def main() -> int:
     print("\n## RollingDem.update, 50 000-point strips (50 % overlap), 12AN2 corridor ground\n")
     print(table(roll, ["method", "messages", "p50_ms", "p95_ms", "max_ms",
                        "anchor_binning_p95_ms", "grid", "known_share"]))
-    print("\n## End to end: DEM of found ground vs DEM of reference ground (tin, 1 m)\n")
+    print(f"\n## End to end: DEM of found ground vs DEM of reference ground "
+          f"({cfg.dem.interpolation}, {cfg.dem.resolution:g} m)\n")
     print(table(e2e, ["file", "source", "features", "precision", "recall", "rmse_common_cells",
                       "rmse_ref_measured_cells", "p95_abs_m", "common_share_of_ref",
                       "ground_seconds"]))
     result = dict(quick=quick, machine=platform.node(), protocol=proto, default_check=checks,
+                  protocol_1000=stable, default_check_1000=checks_stable,
                   isprs_mean=isprs_mean, speed=spd, kmeans=km, rolling=roll, end_to_end=e2e)
     (OUT / "dem.json").write_text(json.dumps(result, indent=2) + "\n")
     print(f"\nwrote {OUT / 'dem.json'}")

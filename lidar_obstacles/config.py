@@ -185,9 +185,11 @@ class DemConfig:
                                "(intensity K-means + TIN outlier checks) or `detector` "
                                "(the obstacle detector's ground filter)",
                                choices=("kmeans", "detector"))
-    interpolation: str = param("tin", "interpolator filling the grid",
-                               choices=("tin", "idw", "kriging", "rbf", "rbfnn"),
-                               tunable=True)
+    interpolation: str = param(
+        "kriging", "interpolator filling the grid: `tin` Delaunay linear, `idw` inverse "
+        "distance, `kriging` local ordinary kriging (the most accurate on the real data, "
+        "benchmarks/bench_dem.py), `rbf` local thin-plate spline, `rbfnn` the paper's RBF "
+        "network", choices=("tin", "idw", "kriging", "rbf", "rbfnn"), tunable=True)
     resolution: float = param(1.0, "cell edge of the DEM grid", "m", min=0.05, max=100.0)
     extent: float = param(200.0, "the rolling DEM keeps this square around the vehicle "
                           "(0: the whole flight up to `max_cells`)", "m", min=0.0,
@@ -224,9 +226,14 @@ class KmeansConfig:
         "ground (at least the lowest cluster is)", "m", min=0.0, max=100.0)
     tin_threshold: float = param(
         0.5, "TIN outlier check: a ground candidate further than this from the TIN of its "
-        "neighbours (and the worst among them) is dropped", "m", min=0.01, max=50.0)
+        "neighbours (and the worst among them, or off by 4x this) is dropped; also the "
+        "height above the TIN of per-window minima beyond which a point is dropped", "m",
+        min=0.01, max=50.0)
     tin_rounds: int = param(5, "TIN outlier checks are repeated at most this often",
                             min=0, max=100)
+    densify_distance: float = param(
+        0.15, "after the checks, points of any cluster within this vertical distance of the "
+        "ground's TIN join the ground (0: off)", "m", min=0.0, max=10.0)
     sample_size: int = param(
         20000, "clustering on several features (XYZ, geometric) sweeps k on at most this "
         "many random points; every point then joins its nearest centre", "points",

@@ -165,8 +165,8 @@ def dem_comparison(xyz: np.ndarray, reference: np.ndarray, predicted: np.ndarray
     out: dict[str, Any] = {"grid": grid_errors(ref_dem.elevation, pred_dem.elevation),
                            "reference_dem": ref_dem, "predicted_dem": pred_dem}
     if len(held):
-        est = grid_values_at(pred_dem.elevation, pred_dem.resolution, tuple(pred_dem.origin),
-                             xyz[held, :2])
+        est = grid_values_at(pred_dem.elevation, xyz[held, :2],
+                             resolution=pred_dem.resolution, origin=tuple(pred_dem.origin))
         out["check_points"] = grid_errors(xyz[held, 2], est)
     return out
 

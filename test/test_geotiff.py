@@ -1,6 +1,9 @@
 """GeoTIFF and hillshade export (lidar_obstacles.io.geotiff)."""
 from __future__ import annotations
 
+import os
+import stat
+
 import numpy as np
 import pytest
 
@@ -26,6 +29,9 @@ def test_round_trip_keeps_values_transform_and_crs(tmp_path):
     assert np.array_equal(back.origin, grid.origin) and back.resolution == 2.0
     assert back.epsg == 32632 and back.nodata == "nan"
     assert [p.name for p in tmp_path.iterdir()] == ["dem.tif"]  # no temp file left
+    mask = os.umask(0)
+    os.umask(mask)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o666 & ~mask  # as open() would make it
 
 
 def test_file_is_north_up(tmp_path):

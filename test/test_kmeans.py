@@ -9,7 +9,8 @@ import pytest
 from conftest import data_file
 from lidar_obstacles.config import KmeansConfig
 from lidar_obstacles.core.kmeans import (elbow_kmeans, geometric_features, intensity_problem,
-                                         kmeans, kmeans_ground, knee_index, standardise,
+                                         kmeans, kmeans_ground, knee_index,
+                                         lower_envelope_filter, standardise,
                                          tin_outlier_filter)
 from lidar_obstacles.errors import CloudFormatError
 
@@ -90,6 +91,20 @@ def test_tin_outlier_filter_drops_spike_and_pit_keeps_plane():
     assert tin_outlier_filter(line, threshold=0.1, max_rounds=3).all()
 
 
+def test_lower_envelope_drops_low_patches_keeps_sloping_ground():
+    rng = np.random.default_rng(9)
+    xy = rng.uniform(0, 60, (6000, 2))
+    z = 0.3 * xy[:, 0]  # a 30 % slope: no loss inside; the rim beyond the minima's hull
+    # is judged against the nearest minima and loses points where slope x distance > 0.5
+    hedge = (np.abs(xy[:, 0] - 30) < 4) & (np.abs(xy[:, 1] - 30) < 4)
+    z[hedge] += 1.5  # an 8 x 8 m patch 1.5 m up: smooth, level, invisible to neighbours
+    keep = lower_envelope_filter(np.column_stack([xy, z]), cell=10.0, threshold=0.5)
+    assert not keep[hedge].any()
+    inner = (xy[:, 0] > 10) & (xy[:, 0] < 50) & (xy[:, 1] > 10) & (xy[:, 1] < 50)
+    assert keep[~hedge & inner].all()
+    assert keep[~hedge].mean() > 0.8
+
+
 def _scene(rng, intensity_for_ground=(200, 400)):
     """A 60 x 60 m sloping ground with two intensity classes and a 20 x 20 m roof at +6 m."""
     ground = rng.uniform(0, 60, (12000, 2))
@@ -116,7 +131,10 @@ def test_kmeans_ground_picks_ground_automatically(features):
     assert precision > 0.98 and recall > 0.8, (features, precision, recall)
 
 
-def test_missing_or_flag_intensity_falls_back_to_geometry(caplog):
+def test_missing_or_flag_intensity_falls_back_to_geometry(caplog, monkeypatch):
+    import lidar_obstacles.core.kmeans as km
+
+    monkeypatch.setattr(km, "_warned", set())
     rng = np.random.default_rng(6)
     xyz, _, truth = _scene(rng)
     assert "no intensity" in intensity_problem(None)
@@ -124,8 +142,10 @@ def test_missing_or_flag_intensity_falls_back_to_geometry(caplog):
     assert "2 distinct" in intensity_problem(flag)
     with caplog.at_level(logging.WARNING):
         found = kmeans_ground(xyz, cfg=KmeansConfig(restarts=3), intensity=flag)
+        again = kmeans_ground(xyz, cfg=KmeansConfig(restarts=3), intensity=flag)
     assert found.features == "geometric" and "distinct" in found.reason
-    assert sum("geometric" in r.getMessage() for r in caplog.records) == 1
+    assert again.reason == found.reason  # the flag stays in every result...
+    assert sum("geometric" in r.getMessage() for r in caplog.records) == 1  # ...logged once
     assert (found.ground & truth).sum() / found.ground.sum() > 0.98
 
 

@@ -33,9 +33,11 @@ NS = "/uav1"
 
 
 def _start(module: str, *ros_args: str) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", module, "--ros-args", "-r", f"__ns:={NS}", *ros_args],
-        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    """Start a node executable (the installed console script, as a user would)."""
+    exe = Path(sys.executable).parent / module.rsplit(".", 1)[-1]
+    cmd = [str(exe)] if exe.is_file() else [sys.executable, "-m", module]
+    return subprocess.Popen(cmd + ["--ros-args", "-r", f"__ns:={NS}", *ros_args],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
 def _stop(proc: subprocess.Popen) -> tuple[int, str]:

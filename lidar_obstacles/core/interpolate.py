@@ -8,8 +8,9 @@ One entry, :func:`interpolate`, with five methods:
   neighbourhoods. Written in the dual form, estimate(x) = sum_i a_i gamma(|x - x_i|) + b
   with [Gamma 1; 1' 0][a; b] = [z; 0], which is algebraically the same as solving for the
   kriging weights but needs one solve per neighbourhood instead of one per query; queries
-  with the same k nearest samples (common on a grid denser than the data) share it. The
-  systems are solved stacked, (U, k+1, k+1), with one np.linalg.solve call per chunk.
+  in the same block of one sample spacing share a neighbourhood (a grid denser than the
+  data solves about one system per sample). The systems are solved stacked,
+  (U, k+1, k+1), with one np.linalg.solve call per chunk.
 - ``rbf``: local radial basis functions with a linear polynomial, the same dual machinery.
 - ``rbfnn``: the paper's RBF network (like MATLAB newrb): Gaussian units added one at a
   time at the worst-fitted sample until the training MSE reaches the goal.
@@ -178,7 +179,7 @@ def fit_variogram(xy: np.ndarray, z: np.ndarray, *, model: str, neighbours: int,
                   rng: np.random.Generator | int | None = 0) -> Variogram:
     """Fit a variogram to the samples' semivariances at the lags local kriging uses.
 
-    Pairs: each of up to 3000 random samples with its 4*neighbours nearest (the short
+    Pairs: each of up to 3000 random samples with its 2*neighbours nearest (the short
     lags local kriging sees) plus 20000 random pairs (the sill). Lags are binned by
     quantiles so every bin holds as many pairs; the model is fitted by least squares with
     short lags weighted up. A flat or tiny set gives a pure linear variogram.
@@ -188,8 +189,8 @@ def fit_variogram(xy: np.ndarray, z: np.ndarray, *, model: str, neighbours: int,
     if n < 3 or np.ptp(z) == 0:
         return Variogram(model="linear", nugget=0.0, partial_sill=1.0, range_=1.0)
     sub = gen.choice(n, min(n, 3000), replace=False)
-    k = min(4 * neighbours + 1, n)
-    _, idx = cKDTree(xy).query(xy[sub], k=k, workers=-1)
+    k = min(2 * neighbours + 1, n)
+    _, idx = cKDTree(xy).query(xy[sub], k=k)
     a = np.concatenate([np.repeat(sub, k - 1), gen.integers(n, size=20000)])
     b = np.concatenate([idx[:, 1:].ravel(), gen.integers(n, size=20000)])
     h = np.hypot(*(xy[a] - xy[b]).T)

