@@ -102,11 +102,11 @@ class GroundConfig:
 @dataclass(frozen=True)
 class TinConfig:
     cell_size: float = param(
-        30.0, "seed grid cell (lowest point per cell); about the edge of the largest building",
+        20.0, "seed grid cell (lowest point per cell); about the edge of the largest building",
         "m", min=1.0, max=500.0, tunable=True)
     max_distance: float = param(1.0, "a point joins the ground when its distance to the TIN "
                                 "facet is below this", "m", min=0.01, max=20.0, tunable=True)
-    max_angle: float = param(12.0, "a point joins when the three vertex angles asin(d/S) are "
+    max_angle: float = param(20.0, "a point joins when the three vertex angles asin(d/S) are "
                              "below this", "deg", min=0.5, max=60.0, tunable=True)
     max_iterations: int = param(40, "densification stops after this many rounds even if "
                                 "points still join", min=1, max=500)
@@ -148,9 +148,9 @@ class ObstaclesConfig:
     noise_radius: float = param(3.0, "a point with fewer than `noise_min_neighbours` within "
                                 "this radius is noise (7)", "m", min=0.1, max=50.0)
     noise_min_neighbours: int = param(1, "see `noise_radius`", "points", min=0, max=100)
-    wire_linearity: float = param(0.9, "PCA linearity (l1-l2)/l1 above which a neighbourhood "
+    wire_linearity: float = param(0.6, "PCA linearity (l1-l2)/l1 above which a neighbourhood "
                                   "is a wire", min=0.0, max=1.0, tunable=True)
-    wire_max_slope: float = param(30.0, "wires are at most this steep", "deg", min=0.0,
+    wire_max_slope: float = param(15.0, "wires are at most this steep", "deg", min=0.0,
                                   max=90.0)
     wire_min_clearance: float = param(3.0, "wires hang at least this high above ground with "
                                       "empty space below", "m", min=0.0, max=100.0)
