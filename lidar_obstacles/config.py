@@ -97,6 +97,14 @@ class GroundConfig:
         "hybrid", "ground filter: `tin` progressive TIN densification (Axelsson), `ransac` "
         "per-tile RANSAC plane with the robust eigenvalue fit, `hybrid` the measured best",
         choices=("hybrid", "tin", "ransac"), tunable=True)
+    cell: float = param(1.0, "hybrid: raster cell of the lowest-point grid", "m",
+                        min=0.1, max=10.0, tunable=True)
+    slope: float = param(0.15, "hybrid: terrain slope (rise/run) the opening keeps as ground",
+                         min=0.01, max=2.0, tunable=True)
+    window: float = param(18.0, "hybrid: largest opening radius, about half the largest "
+                          "building", "m", min=1.0, max=200.0, tunable=True)
+    threshold: float = param(0.5, "hybrid: points this close above the ground surface (flat "
+                             "ground) are ground", "m", min=0.05, max=5.0, tunable=True)
 
 
 @dataclass(frozen=True)
@@ -128,8 +136,10 @@ class RansacConfig:
 
 @dataclass(frozen=True)
 class ContextConfig:
-    radius: float = param(60.0, "ground of earlier messages within this distance of the new "
-                          "message is used as context", "m", min=0.0, max=2000.0)
+    radius: float = param(0.0, "ground of earlier messages within this distance of the new "
+                          "message is used as context (0: off; measured on the simulator, "
+                          "edge errors of earlier strips spread, so it is off by default)",
+                          "m", min=0.0, max=2000.0)
     seconds: float = param(10.0, "ground older than this is forgotten", "s",
                            min=0.0, max=3600.0)
     cell: float = param(1.0, "cell of the rolling ground model kept between messages", "m",

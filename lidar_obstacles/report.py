@@ -99,8 +99,13 @@ def _offset(values: np.ndarray) -> float:
     return float(np.floor(lo / step) * step) if abs(lo) >= 1000 else 0.0
 
 
+def _thousands(value: float) -> str:
+    """12 345 678: thin groups as in surveying reports, never a comma (a decimal mark)."""
+    return f"{value:,.0f}".replace(",", " ")
+
+
 def _coord_label(axis: str, offset: float) -> str:
-    return f"{axis} − {offset:,.0f} (m)".replace(",", " ") if offset else f"{axis} (m)"
+    return f"{axis} − {_thousands(offset)} (m)" if offset else f"{axis} (m)"
 
 
 def _xyz(xyz: Any) -> np.ndarray:
@@ -139,14 +144,19 @@ def _exaggeration(length: float, height: float, target: float = 0.22) -> int:
 def _map_views(
     xyz: np.ndarray,
     colours: np.ndarray,
-    sizes: np.ndarray,
+    emphasised: np.ndarray,
     order_top: np.ndarray,
     order_side: np.ndarray,
     title: str,
+    *,
+    emph_scale: float,
 ):
     """Top view (north-up, equal scale) above a side view along the main axis.
 
-    Returns (fig, ax_top, ax_side); points are drawn in the given orders.
+    Marker size follows the drawn point spacing so that sparse clouds do not dissolve
+    into moiré and dense ones do not turn into blots; ``emphasised`` points get
+    ``emph_scale`` times the area. Returns (fig, ax_top, ax_side); points are drawn in
+    the given orders.
     """
     xy = xyz[:, :2]
     ox, oy = _offset(xyz[:, 0]), _offset(xyz[:, 1])
@@ -159,22 +169,34 @@ def _map_views(
     height = max(float(np.ptp(xyz[:, 2])), 1e-6)
     exag = _exaggeration(length, height)
     width = 11.0
-    top_h = float(np.clip(dy / dx, 0.35, 1.4)) * 7.5
+    top_h = float(np.clip(dy / dx, 0.35, 1.2)) * 7.5
     side_h = float(np.clip(height * exag / length, 0.12, 0.5)) * 9.5 + 0.9
+    # mean point spacing over the occupied area (not the bounding box: corridors are
+    # diagonal strips), and the top view's scale in points per metre
+    cells = 128
+    cx = np.minimum(((xyz[:, 0] - xyz[:, 0].min()) / dx * cells).astype(np.int64), cells - 1)
+    cy = np.minimum(((xyz[:, 1] - xyz[:, 1].min()) / dy * cells).astype(np.int64), cells - 1)
+    area = np.unique(cy * cells + cx).size * (dx / cells) * (dy / cells)
+    spacing = np.sqrt(area / xyz.shape[0])
+    map_w_in = min(width - 3.2, 0.92 * top_h * dx / dy)
+    diameter_pt = float(np.clip(0.75 * spacing * map_w_in * 72.0 / dx, 0.6, 6.0))
+    sizes = np.where(emphasised, emph_scale, 1.0) * diameter_pt**2
     fig = _figure(width, top_h + side_h + 0.8)
     gs = fig.add_gridspec(2, 1, height_ratios=[top_h, side_h])
     ax_top = fig.add_subplot(gs[0])
     ax_side = fig.add_subplot(gs[1])
-    for ax, order, xs, ys in (
-        (ax_top, order_top, xyz[:, 0] - ox, xyz[:, 1] - oy),
-        (ax_side, order_side, along, xyz[:, 2]),
+    # the side view stacks every point of a profile on the same pixels: smaller markers
+    for ax, order, xs, ys, scale in (
+        (ax_top, order_top, xyz[:, 0] - ox, xyz[:, 1] - oy, 1.0),
+        (ax_side, order_side, along, xyz[:, 2], 0.4),
     ):
-        ax.scatter(xs[order], ys[order], c=colours[order], s=sizes[order], marker=".",
+        ax.scatter(xs[order], ys[order], c=colours[order], s=scale * sizes[order], marker="o",
                    linewidths=0, rasterized=True)
         ax.set_facecolor("white")
         ax.grid(True, color="#e6e6e6", linewidth=0.5, zorder=0)
         ax.set_axisbelow(True)
     ax_top.set_aspect("equal", adjustable="box")
+    ax_top.set_anchor("NW")  # a tall map leaves room on its right for the legend
     ax_top.set_xlabel(_coord_label("easting x", ox))
     ax_top.set_ylabel(_coord_label("northing y", oy))
     ax_top.set_title(f"{title} — top view", fontsize=11)
@@ -189,6 +211,19 @@ def _map_views(
                 fontsize=8, color="#444444", va="bottom", ha="left",
                 bbox=dict(facecolor="white", alpha=0.7, edgecolor="none", pad=1.5))
     return fig, ax_top, ax_side
+
+
+def _map_figure(width_m: float, height_m: float, *, colorbar: bool = True):
+    """Figure sized to a map's shape (equal scale) so it carries little white space.
+
+    The map area fits in 7.5 x 8.5 inches; room is added for labels, title and colour bar.
+    """
+    aspect = float(np.clip(height_m / max(width_m, 1e-9), 0.25, 4.0))
+    map_w, map_h = 7.5, 7.5 * aspect
+    if map_h > 8.5:
+        map_w, map_h = 8.5 / aspect, 8.5
+    fig = _figure(map_w + (2.2 if colorbar else 1.0), map_h + 1.4)
+    return fig, fig.add_subplot()
 
 
 def _legend(ax, entries: Iterable[tuple[str, str]], title: str | None = None) -> None:
@@ -248,23 +283,22 @@ def cloud_views_png(
     idx = _subsample(codes.size, emph, max_points, seed)
     sub, sub_codes, sub_emph = pts[idx], codes[idx], emph[idx]
     colours = _code_colours(sub_codes)
-    base = 1.2 if idx.size > 50_000 else 3.0
-    sizes = np.where(sub_emph, base * 4.0, base)
     # emphasised classes last in both views; otherwise by height (top) or depth (side)
     order_top = np.lexsort((sub[:, 2], sub_emph))
     u = _principal_axis(sub[:, :2])
     depth = (sub[:, :2] - sub[:, :2].mean(axis=0)) @ np.array([-u[1], u[0]])
     order_side = np.lexsort((-depth, sub_emph))
-    fig, ax_top, _ = _map_views(sub, colours, sizes, order_top, order_side, title)
+    fig, ax_top, _ = _map_views(sub, colours, sub_emph, order_top, order_side, title,
+                                emph_scale=4.0)
     present, counts = np.unique(codes, return_counts=True)
     entries = [
-        (f"{c:d} {CLASS_STYLE.get(int(c), (f'class {c}', ''))[0]} ({n:,})".replace(",", " "),
+        (f"{c:d} {CLASS_STYLE.get(int(c), (f'class {c}', ''))[0]} ({_thousands(n)})",
          CLASS_STYLE.get(int(c), ("", _OTHER_COLOUR))[1])
         for c, n in zip(present, counts)
     ]
     _legend(ax_top, entries, title="ASPRS class (points)")
     if idx.size < codes.size:
-        fig.suptitle(f"{idx.size:,} of {codes.size:,} points drawn".replace(",", " "),
+        fig.suptitle(f"{_thousands(idx.size)} of {_thousands(codes.size)} points drawn",
                      fontsize=8, x=0.99, ha="right", color="#666666")
     return _save(fig, path)
 
@@ -323,13 +357,12 @@ def error_views_png(
 
     palette = np.array([to_rgba(c) for _, c in ERROR_STYLE])
     colours = palette[sub_cat]
-    base = 1.2 if idx.size > 50_000 else 3.0
-    sizes = np.where(sub_cat > 0, base * 3.0, base)
     order_top = np.lexsort((sub[:, 2], sub_cat > 0))
     u = _principal_axis(sub[:, :2])
     depth = (sub[:, :2] - sub[:, :2].mean(axis=0)) @ np.array([-u[1], u[0]])
     order_side = np.lexsort((-depth, sub_cat > 0))
-    fig, ax_top, _ = _map_views(sub, colours, sizes, order_top, order_side, title)
+    fig, ax_top, _ = _map_views(sub, colours, sub_cat > 0, order_top, order_side, title,
+                                emph_scale=2.0)
     shares = np.bincount(cat, minlength=len(ERROR_STYLE)) / cat.size
     _legend(ax_top, [(f"{name} ({100 * s:.2f} %)", colour)
                      for (name, colour), s in zip(ERROR_STYLE, shares)],
@@ -353,8 +386,8 @@ def confusion_png(
     matrix: (K, K) counts, rows = predicted, columns = reference (the convention of
     :mod:`lidar_obstacles.core.metrics`). labels: K class names.
     Colour and percentage are the share of each reference class (column-normalised, so a
-    rare class such as wires is as readable as ground); the diagonal is then the
-    producer's accuracy. Classes absent from both sides are left out when ``drop_empty``.
+    rare class such as wires is as readable as ground; square-root colour scale so small
+    confusions show); the diagonal is then the producer's accuracy. Classes absent from both sides are left out when ``drop_empty``.
     """
     m = np.asarray(matrix, dtype=np.int64)
     names = list(labels)
@@ -371,11 +404,14 @@ def confusion_png(
     side = 2.2 + 0.95 * k
     fig = _figure(side + 1.4, side)
     ax = fig.add_subplot()
-    im = ax.imshow(share * 100.0, cmap="Blues", vmin=0.0, vmax=100.0)
+    from matplotlib.colors import PowerNorm
+
+    # square-root colour scale: a 1 % confusion still shows, 97 % vs 99 % stays apart
+    im = ax.imshow(share * 100.0, cmap="Blues", norm=PowerNorm(0.5, vmin=0.0, vmax=100.0))
     for i in range(k):
         for j in range(k):
-            dark = share[i, j] > 0.55
-            ax.text(j, i, f"{m[i, j]:,}\n{100 * share[i, j]:.1f} %".replace(",", " "),
+            dark = share[i, j] > 0.35
+            ax.text(j, i, f"{_thousands(m[i, j])}\n{100 * share[i, j]:.1f} %",
                     ha="center", va="center", fontsize=8 if k <= 5 else 7,
                     color="white" if dark else "#1a1a1a",
                     fontweight="bold" if i == j else "normal")
@@ -383,7 +419,7 @@ def confusion_png(
     ax.set_yticks(range(k), names)
     ax.set_xlabel("reference class (columns)")
     ax.set_ylabel("predicted class (rows)")
-    ax.set_title(f"{title}\n{int(m.sum()):,} points".replace(",", " "), fontsize=11)
+    ax.set_title(f"{title}\n{_thousands(m.sum())} points", fontsize=11)
     ax.set_xticks(np.arange(k + 1) - 0.5, minor=True)
     ax.set_yticks(np.arange(k + 1) - 0.5, minor=True)
     ax.grid(which="minor", color="white", linewidth=1.5)
@@ -417,10 +453,7 @@ def block_kappa_png(
     ny, nx = kap.shape
     ox, oy = _offset(np.array([xmin])), _offset(np.array([ymin]))
     ext = (xmin - ox, xmax - ox, ymin - oy, ymax - oy)
-    aspect = (ymax - ymin) / max(xmax - xmin, 1e-6)
-    h = float(np.clip(aspect, 0.4, 1.8)) * 6.0 + 1.2
-    fig = _figure(8.0, h)
-    ax = fig.add_subplot()
+    fig, ax = _map_figure(xmax - xmin, ymax - ymin)
     from matplotlib.patches import Rectangle
 
     ax.add_patch(Rectangle((ext[0], ext[2]), ext[1] - ext[0], ext[3] - ext[2],
@@ -480,9 +513,7 @@ def _grid_figure(grid: np.ndarray, resolution: float, origin: tuple[float, float
     ext = _grid_extent(grid.shape, resolution, origin)
     ox, oy = _offset(np.array([ext[0]])), _offset(np.array([ext[2]]))
     ext = (ext[0] - ox, ext[1] - ox, ext[2] - oy, ext[3] - oy)
-    aspect = grid.shape[0] / grid.shape[1]
-    fig = _figure(8.0, float(np.clip(aspect, 0.35, 1.8)) * 6.2 + 1.2)
-    ax = fig.add_subplot()
+    fig, ax = _map_figure(float(grid.shape[1]), float(grid.shape[0]))
     ax.set_xlabel(_coord_label("easting x", ox))
     ax.set_ylabel(_coord_label("northing y", oy))
     ax.set_aspect("equal")
@@ -501,7 +532,7 @@ def hillshade_png(
 ) -> Path:
     """Hill-shaded elevation map with an elevation colour bar.
 
-    elevation: (rows, cols) float, metres, NaN = unknown (left white); row 0 south.
+    elevation: (rows, cols) float, metres, NaN = unknown (shown light grey); row 0 south.
     resolution: m/cell; origin: (x, y) of the grid's south-west corner, metres.
     Light from ``azimuth_deg`` (clockwise from north) at ``altitude_deg``, true scale
     (no vertical exaggeration), blended over a terrain colour ramp.
@@ -516,17 +547,25 @@ def hillshade_png(
         lo, hi = np.nanpercentile(grid, [1, 99])
         if hi <= lo:
             lo, hi = lo - 0.5, hi + 0.5
-        # shading needs a value everywhere; unknown cells get the mean and are hidden after
-        filled = np.where(known, grid, np.nanmean(grid))
+        # shading needs a value everywhere: unknown cells take their nearest known value
+        # (a constant fill would cast false cliffs around every hole) and are hidden after
+        from scipy.ndimage import distance_transform_edt
+
+        nearest = distance_transform_edt(~known, return_distances=False, return_indices=True)
+        filled = grid[tuple(nearest)]
         ls = LightSource(azdeg=azimuth_deg, altdeg=altitude_deg)
         import matplotlib
+        from matplotlib.colors import ListedColormap
 
-        cmap = matplotlib.colormaps["gist_earth"]
+        # gist_earth without its black low end and white high end, so that white can
+        # only mean "unknown" and shading stays visible on the highest terrain
+        cmap = ListedColormap(matplotlib.colormaps["gist_earth"](np.linspace(0.12, 0.88, 256)))
         norm = Normalize(lo, hi)
         # LightSource works with row 0 at the top; the grid has row 0 south, so flip.
-        rgb = ls.shade(filled[::-1], cmap=cmap, norm=norm, blend_mode="soft",
+        rgb = ls.shade(filled[::-1], cmap=cmap, norm=norm, blend_mode="overlay",
                        vert_exag=1.0, dx=resolution, dy=resolution)[::-1]
         rgb[~known] = (1.0, 1.0, 1.0, 0.0)
+        ax.set_facecolor("#e4e4e4")
         ax.imshow(rgb, origin="lower", extent=ext, interpolation="nearest")
         cb = fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=ax, shrink=0.8)
         cb.set_label("elevation (m)")
@@ -565,7 +604,7 @@ def dem_error_png(
     cb.set_label("DEM − reference (m)")
     if vals.size:
         stats = (f"RMSE {np.sqrt(np.mean(vals ** 2)):.3f} m, bias {vals.mean():+.3f} m, "
-                 f"{vals.size:,} cells".replace(",", " "))
+                 f"{_thousands(vals.size)} cells")
     else:
         stats = "no cell compared"
     ax.set_title(f"{title}\n{stats}", fontsize=10)
@@ -729,7 +768,7 @@ def _fmt(key: str, value: Any) -> str:
     if isinstance(value, bool):
         return "yes" if value else "no"
     if isinstance(value, int):
-        return f"{value:,}".replace(",", " ")
+        return _thousands(value)
     if isinstance(value, float):
         if key in _PERCENT_KEYS:
             return f"{100.0 * value:.2f} %"
