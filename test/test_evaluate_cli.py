@@ -12,13 +12,15 @@ from test_offline import run_cli
 
 
 def test_evaluate_replay_output_and_report(tmp_path):
-    run_cli("simulate", tmp_path / "flight", "--duration", "2", "--seed", "2")
+    run_cli("simulate", tmp_path / "flight", "--duration", "2", "--seed", "2",
+            "--scene", "corridor")
     run_cli("replay", tmp_path / "flight", tmp_path / "out", "--no-dem")
     m = run_cli("evaluate", tmp_path / "out", "--report", tmp_path / "report")
     assert m["kind"] == "replay_bag" and m["clouds"] == 20
     assert m["n_points"] > 100_000
     go = m["ground_object"]
     assert 0.0 <= go["total_error"] <= 1.0 and go["kappa"] > 0.8
+    assert m["safety"]["n_wire"] + m["safety"]["n_tower"] > 0
     assert m["safety"]["obstacle_as_ground"] < 0.01
     assert m["dem"]["grid"]["rmse_m"] is not None
     html = (tmp_path / "report" / "report.html").read_text()
@@ -56,8 +58,8 @@ def test_tune_improves_a_mistuned_start_and_the_yaml_loads_in_the_node(tmp_path)
     space.write_text("ground.method: [ransac, tin, hybrid]\nransac.distance_threshold: [0.02, 2.0]\n")
     out = tmp_path / "tuned.yaml"
     summary = run_cli("tune", src, "--validate", data_file("isprs/samp52-utm.laz"),
-                      "--start", start, "--space", space, "--out", out, "--budget", "120s",
-                      "--trials", "10", "--seed", "1")
+                      "--start", start, "--space", space, "--out", out, "--budget", "90s",
+                      "--trials", "6", "--seed", "1")
     assert summary["best_score"] > summary["start_score"] + 0.1
     assert summary["validation"]["best_score"] > summary["validation"]["start_score"]
     assert set(summary["sensitivity"]) <= {"ground.method", "ransac.distance_threshold"}

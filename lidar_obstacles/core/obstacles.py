@@ -182,6 +182,7 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
         wire_tree = cKDTree(wire_xyz) if len(wire_xyz) else None
         wire_xy_tree = cKDTree(wire_xyz[:, :2]) if len(wire_xyz) else None
         rest = np.flatnonzero(~is_wire)
+        tower_feet: list[np.ndarray] = []
         labels = voxel_components(xyz[cand[rest]], cfg.cluster_distance)
         next_id = 0
         order = np.argsort(labels, kind="stable")
@@ -212,6 +213,7 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
                     else False
                 if hit.any() and not wire_above:
                     classes[pid[column]] = TOWER
+                    tower_feet.append(p[column & (h < 0.3 * height)])
                     object_id[pid] = next_id
                     next_id += 1
                     continue
@@ -228,6 +230,13 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
                 classes[pid] = cls
             object_id[pid] = next_id
             next_id += 1
+        # Tower legs stand on the ground: their lowest points are within the ground filter's
+        # band, but a UAV must never take them for ground.
+        for feet in tower_feet:
+            if len(feet):
+                lo_xy, hi_xy = feet[:, :2].min(axis=0) - 0.5, feet[:, :2].max(axis=0) + 0.5
+                inside = np.all((xyz[:, :2] >= lo_xy) & (xyz[:, :2] <= hi_xy), axis=1)
+                classes[inside & (classes == GROUND)] = TOWER
         wire_ids = cand[is_wire]
         if len(wire_ids):
             runs = voxel_components(xyz[wire_ids], 2.0)

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
+from lidar_obstacles.core.classes import GROUND
 
 
 @dataclass(frozen=True)
@@ -108,7 +109,7 @@ class ObstacleDetector:
         timings = {"context": t1 - t0, "ground": t2 - t1, "context_update": t3 - t2,
                    "obstacles": t4 - t3, "clearance": t5 - t4, "total": t5 - t0}
         return ObstacleResult(
-            ground=g.ground, classes=ob.classes, height_above_ground=g.height_above_ground,
+            ground=ob.classes == GROUND, classes=ob.classes, height_above_ground=g.height_above_ground,
             object_id=ob.object_id, objects=ob.objects,
             clearance=ClearanceGrid(cells, np.asarray(origin, float), float(res)),
             timings=timings)

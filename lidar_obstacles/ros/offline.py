@@ -317,6 +317,20 @@ def cdr_of_record(reader: BagReader, record) -> bytes | None:
 # --------------------------------------------------------------------------- export-dem
 
 
+def crop_to_data(grid):
+    """The grid cut to the rows and columns that hold measured cells (the rolling grid grows
+    in blocks and fills a margin around the data; the survey's DEM stops at the survey)."""
+    import dataclasses
+
+    rows = np.flatnonzero((grid.count > 0).any(axis=1))
+    cols = np.flatnonzero((grid.count > 0).any(axis=0))
+    r, c = slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
+    origin = np.asarray(grid.origin, float) + np.array([cols[0], rows[0]]) * grid.resolution
+    return dataclasses.replace(grid, elevation=grid.elevation[r, c],
+                               interpolated=grid.interpolated[r, c], count=grid.count[r, c],
+                               origin=origin)
+
+
 def export_dem(src: Path, out: Path, *, topic: str | None = None,
                params_file: Path | None = None, crs: str | None = None) -> dict:
     """Build the DEM of a whole bag offline; write a GeoTIFF and a hillshade PNG beside it."""
@@ -336,6 +350,7 @@ def export_dem(src: Path, out: Path, *, topic: str | None = None,
     grid = stage.grid()
     if grid is None or not np.isfinite(grid.elevation).any():
         raise BagError(f"no ground found in {src}: cannot build a DEM")
+    grid = crop_to_data(grid)
     crs_text = crs or dem_cfg.export.crs or bag_crs
     epsg, wkt = parse_crs(crs_text)
     write_geotiff(out, grid, crs_epsg=epsg, crs_wkt=wkt)
