@@ -198,6 +198,11 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
         return 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        # SIGINT/SIGTERM while the node is still being built: rclpy's handler has shut the
+        # context down, so the next create_* call fails. That is a clean stop, not an error.
+        if rclpy.ok():
+            raise
     finally:
         if node is not None:
             node.destroy_node()
