@@ -99,7 +99,7 @@ class GroundConfig:
         choices=("hybrid", "tin", "ransac"), tunable=True)
     cell: float = param(1.0, "hybrid: raster cell of the lowest-point grid", "m",
                         min=0.1, max=10.0, tunable=True)
-    slope: float = param(0.15, "hybrid: terrain slope (rise/run) the opening keeps as ground",
+    slope: float = param(0.2, "hybrid: terrain slope (rise/run) the opening keeps as ground",
                          min=0.01, max=2.0, tunable=True)
     window: float = param(18.0, "hybrid: largest opening radius, about half the largest "
                           "building", "m", min=1.0, max=200.0, tunable=True)
@@ -191,9 +191,10 @@ class FeaturesConfig:
 
 @dataclass(frozen=True)
 class DemConfig:
-    ground_source: str = param("kmeans", "where the DEM's ground comes from: `kmeans` "
+    ground_source: str = param("detector", "where the DEM's ground comes from: `kmeans` "
                                "(intensity K-means + TIN outlier checks) or `detector` "
-                               "(the obstacle detector's ground filter)",
+                               "(the obstacle detector's ground filter; the default: ~15 x faster per message "
+                               "than kmeans, measured on the simulator)",
                                choices=("kmeans", "detector"))
     interpolation: str = param(
         "kriging", "interpolator filling the grid: `tin` Delaunay linear, `idw` inverse "
