@@ -32,6 +32,7 @@ from lidar_obstacles.core.ransac import ransac_plane
 
 # TIN variant: a seed this far below the median of its neighbouring seeds is a low blunder.
 LOW_SEED_DROP = 2.0  # m
+HIGH_SEED_DROP = 5.0  # m: a seed this far above its neighbours is an object's lowest point
 
 
 @dataclass(frozen=True)
@@ -70,14 +71,15 @@ def _lowest_per_cell(xy: np.ndarray, z: np.ndarray, cell: float) -> np.ndarray:
     return order[first]
 
 
-def _drop_low_seeds(seeds_xyz: np.ndarray) -> np.ndarray:
-    """(S,) bool: seeds that are not far below the median of their 8 nearest seeds."""
+def _drop_odd_seeds(seeds_xyz: np.ndarray) -> np.ndarray:
+    """(S,) bool: seeds that are neither far below the median of their 8 nearest seeds (a
+    low blunder) nor far above it (a cell holding only an object, e.g. a wire at the edge)."""
     if len(seeds_xyz) < 5:
         return np.ones(len(seeds_xyz), bool)
     k = min(9, len(seeds_xyz))
     _, nn = cKDTree(seeds_xyz[:, :2]).query(seeds_xyz[:, :2], k=k)
     med = np.median(seeds_xyz[nn[:, 1:], 2], axis=1)
-    return seeds_xyz[:, 2] > med - LOW_SEED_DROP
+    return (seeds_xyz[:, 2] > med - LOW_SEED_DROP) & (seeds_xyz[:, 2] < med + HIGH_SEED_DROP)
 
 
 def _facet_test(tri: Delaunay, ground_xyz: np.ndarray, pts: np.ndarray, simplex: np.ndarray,
@@ -95,7 +97,7 @@ def _facet_test(tri: Delaunay, ground_xyz: np.ndarray, pts: np.ndarray, simplex:
 
 
 def tin_densification(xyz: np.ndarray, cfg: TinConfig, *, fixed: np.ndarray | None = None,
-                      drop_low_seeds: bool = False) -> np.ndarray:
+                      drop_odd_seeds: bool = False) -> np.ndarray:
     """(N,) bool ground by progressive TIN densification of (N, 3) centred points.
 
     fixed: (F, 3) extra ground points (the streaming context), part of the TIN, not output.
@@ -105,8 +107,8 @@ def tin_densification(xyz: np.ndarray, cfg: TinConfig, *, fixed: np.ndarray | No
     if n == 0:
         return ground
     seeds = _lowest_per_cell(xyz[:, :2], xyz[:, 2], cfg.cell_size)
-    if drop_low_seeds:
-        seeds = seeds[_drop_low_seeds(xyz[seeds])]
+    if drop_odd_seeds:
+        seeds = seeds[_drop_odd_seeds(xyz[seeds])]
     ground[seeds] = True
     fixed = np.zeros((0, 3)) if fixed is None else fixed
     for _ in range(cfg.max_iterations):
@@ -229,10 +231,14 @@ def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
         objects |= (last - opened) > cfg.slope * radius * c
         last = opened
     surface = inpaint(np.where(objects | np.isnan(zmin), np.nan, zmin))
-    gy, gx = np.gradient(surface, c)
+    if min(surface.shape) >= 2:
+        gy, gx = np.gradient(surface, c)
+        slope_grid = np.hypot(gx, gy)
+    else:  # a strip one cell wide has no slope to measure
+        slope_grid = np.zeros_like(surface)
     # Slope capped at 1 (45 degrees): at the foot of a wall or a tower leg the raster
     # gradient is huge, and an uncapped band would take the structure for ground.
-    slope = np.minimum(bilinear(np.hypot(gx, gy), origin, c, pts[:, :2]), 1.0)
+    slope = np.minimum(bilinear(slope_grid, origin, c, pts[:, :2]), 1.0)
     band = cfg.threshold + cfg.scalar * slope
     ground = np.zeros(n, bool)
     for _ in range(cfg.passes):
@@ -310,7 +316,7 @@ def _ransac_tiles(xyz: np.ndarray, tiling: TilingConfig, rcfg: RansacConfig,
         if res.plane is not None and len(pts) >= 10:
             resid = res.plane.distance(pts[res.inliers])
             spread = 1.4826 * np.median(np.abs(resid - np.median(resid))) if len(resid) else 0.0
-            relief = np.ptp(pts[res.inliers, 2]) if res.inliers.any() else 0.0
+            relief = np.ptp(pts[:, 2])  # the paper's failures: blocks spanning relief
             poor = (res.inliers.mean() < tiling.min_inlier_ratio or spread > tiling.max_residual
                     or relief > tiling.max_relief)
             if poor and depth < tiling.max_depth and size / 2 >= tiling.min_size:
@@ -344,16 +350,21 @@ def classify_ground(xyz: np.ndarray, *, tiling: TilingConfig, ground: GroundConf
     fixed = None if context_xyz is None or len(context_xyz) == 0 else context_xyz - origin
     tiles = splits = 0
     tiles = 1
-    if ground.method == "hybrid":
+    xy_c = pts[:, :2] - pts[:, :2].mean(axis=0)
+    sv = np.linalg.svd(xy_c[:: max(1, n // 5000)], compute_uv=False)
+    method = ground.method
+    if sv[1] <= 1e-6 * max(sv[0], 1e-12):
+        method = "hybrid"  # collinear or coincident in XY: no TIN, no tiles; the raster copes
+    if method == "hybrid":
         is_ground, z_ground = morphological_ground(pts, HybridSettings(cell=ground.cell,
                                                    slope=ground.slope, window=ground.window,
                                                    threshold=ground.threshold), fixed=fixed)
         t1 = time.perf_counter()
     else:
-        if ground.method == "ransac":
+        if method == "ransac":
             is_ground, tiles, splits = _ransac_tiles(pts, tiling, ransac, rng, fixed)
         else:
-            is_ground = tin_densification(pts, tin, fixed=fixed, drop_low_seeds=True)
+            is_ground = tin_densification(pts, tin, fixed=fixed, drop_odd_seeds=True)
         t1 = time.perf_counter()
         g_pts = pts[is_ground] if fixed is None else np.concatenate([fixed, pts[is_ground]])
         z_ground = GroundSurface(g_pts).height(pts[:, :2])

@@ -370,7 +370,7 @@ def _msg_class(msgtype: str):
 
 
 def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] | None = None,
-         namespace: str = "", start_delay: float = 1.0) -> dict:
+         namespace: str = "", start_delay: float = 2.5) -> dict:
     """Publish a bag into the live ROS graph at its recorded rate (scaled by `rate`).
 
     Bag topics are published relative to `namespace` (``/points`` -> ``/uav1/points``).
@@ -395,7 +395,9 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
             pubs[t.topic] = node.create_publisher(_msg_class(t.msgtype), t.topic.lstrip("/"), qos)
         sent = 0
         try:
-            time.sleep(start_delay)  # let discovery match subscribers before the first message
+            # Let discovery match subscribers before the first message; nodes with
+            # `input.reliability: auto` re-check publishers every second and switch.
+            time.sleep(start_delay)
             while True:
                 t0_wall = time.monotonic()
                 t0_bag = None
