@@ -41,9 +41,10 @@ BELOW_GROUND_NOISE = 1.5  # m: points this far below the ground surface are nois
 WIRE_GAP = 2.5  # m: a wire point has no other point from this far below it up to 0.5 m
 WIRE_MIN_RUN = 10.0  # m: wire candidates joined into shorter runs are not wires
 TOWER_WIRE_GAP = 3.0  # m: a tower has wire points this close to it
+TOWER_BASE_MAX = 15.0  # m: widest tower base whose ground points are relabelled
 TOWER_RADIUS = 0.25  # towers: points within this share of the height from the top's axis
 SLENDER = 0.8  # towers/poles: horizontal extent below this share of their height
-PLANAR_SHARE = 0.5  # buildings: share of points with planarity > 0.5
+PLANAR_SHARE = 0.4  # buildings: share of the object's points on its main RANSAC plane
 
 
 @dataclass(frozen=True)
@@ -224,10 +225,12 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
                     continue
             if cls is None and extent < 2.0 and height > 3.0:
                 cls = UNCLASSIFIED
-            if cls is None and (plan[local] > 0.5).mean() > PLANAR_SHARE and len(p) >= 10:
+            if cls is None and len(p) >= 10:
+                # The paper's RANSAC plane segmentation: a building's main roof plane holds a
+                # large share of its points; a crown's best plane holds few.
                 roof = ransac_plane(p, distance_threshold=cfg.building_plane_threshold,
                                     max_trials=200, rng=rng, max_tilt_deg=60.0)
-                if roof.plane is not None:
+                if roof.plane is not None and roof.inliers.mean() >= PLANAR_SHARE:
                     cells = np.unique(np.floor(p[roof.inliers, :2]).astype(np.int64), axis=0)
                     if len(cells) >= cfg.building_min_area:
                         cls = BUILDING
@@ -238,7 +241,8 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
         # Tower legs stand on the ground: their lowest points are within the ground filter's
         # band, but a UAV must never take them for ground.
         for feet in tower_feet:
-            if len(feet):
+            # only a tower's own base (a lattice base is at most ~15 m across)
+            if len(feet) and np.ptp(feet[:, :2], axis=0).max() <= TOWER_BASE_MAX:
                 lo_xy, hi_xy = feet[:, :2].min(axis=0) - 0.5, feet[:, :2].max(axis=0) + 0.5
                 inside = np.all((xyz[:, :2] >= lo_xy) & (xyz[:, :2] <= hi_xy), axis=1)
                 classes[inside & (classes == GROUND)] = TOWER
