@@ -33,9 +33,11 @@ def run_demo(out: Path, *, scene: str = "mixed", duration: float = 20.0, seed: i
         "dem_hillshade": dem["hillshade"], "report": str(report / "report.html"),
         "messages": sim["messages"], "points": sim["points"],
         "real_time_factor": rep["real_time_factor"], "latency_p95_ms": rep["latency_p95_ms"],
-        "ground_kappa": metrics["ground"]["kappa"],
-        "wire_recall": metrics["per_class"].get("wire", {}).get("producers_accuracy"),
-        "wire_tower_in_ground": metrics["safety"]["wire_tower_in_ground"],
+        "ground_kappa": metrics["ground_object"]["kappa"],
+        "total_error": metrics["ground_object"]["total_error"],
+        "wire_recall": metrics["per_class"]["wire"]["producers_accuracy"],
+        "tower_recall": metrics["per_class"]["tower"]["producers_accuracy"],
+        "wire_tower_in_ground": metrics["safety"]["obstacle_as_ground"],
     }
     print(f"\nDemo done. Open {report / 'report.html'} for the pictures; outputs in {out}/",
           file=sys.stderr)

@@ -101,12 +101,14 @@ def test_colcon_build_and_installed_node_starts(tmp_path):
             if not line:
                 break
             lines.append(line)
-            if "subscribed to" in line:
+            if "ready" in line:
                 break
         assert any("subscribed to /points" in x for x in lines), "".join(lines)
+        assert any("ready" in x for x in lines), "".join(lines)
         # It runs from the installed tree, not from the source checkout.
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=30) == 0
+        code = proc.wait(timeout=30)
+        assert code == 0, "".join(lines) + proc.stdout.read()
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -27,6 +27,7 @@ class DemBuilderNode(PipelineNode):
         self._dirty = False
         self._timer = self.create_timer(1.0 / self.cfg.dem.publish_rate, self._publish_dem)
         self.create_service(Trigger, "save_dem", self._save_dem)
+        self.get_logger().info("ready")
 
     def reconfigure(self, cfg: DemBuilderConfig) -> None:
         old_rate = self.stage.cfg.dem.publish_rate

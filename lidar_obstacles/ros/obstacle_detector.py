@@ -23,6 +23,7 @@ class ObstacleDetectorNode(PipelineNode):
             "obstacle_markers": self.create_publisher(MarkerArray, "obstacle_markers", qos),
             "clearance": self.create_publisher(OccupancyGrid, "clearance", qos),
         }
+        self.get_logger().info("ready")
 
     def reconfigure(self, cfg: ObstacleDetectorConfig) -> None:
         self.stage.reconfigure(cfg)
