@@ -105,22 +105,15 @@ def test_nodes_process_a_played_flight(flight, ros_node, tmp_path):
     rel = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    subs = [
-        ros_node.create_subscription(PointCloud2, f"{NS}/obstacles",
-                                     lambda m: got["obstacles"].append(m), rel),
-        ros_node.create_subscription(PointCloud2, f"{NS}/ground",
-                                     lambda m: got["ground"].append(m), rel),
-        ros_node.create_subscription(MarkerArray, f"{NS}/obstacle_markers",
-                                     lambda m: got["markers"].append(m), rel),
-        ros_node.create_subscription(OccupancyGrid, f"{NS}/clearance",
-                                     lambda m: got["clearance"].append(m), rel),
-        ros_node.create_subscription(PointCloud2, f"{NS}/dem",
-                                     lambda m: got["dem"].append(m), latched),
-        ros_node.create_subscription(MapMetaData, f"{NS}/dem_info",
-                                     lambda m: got["dem_info"].append(m), latched),
-        ros_node.create_subscription(DiagnosticArray, "/diagnostics",
-                                     lambda m: got["diag"].append(m), rel),
-    ]
+    wanted = [("obstacles", PointCloud2, f"{NS}/obstacles", rel),
+              ("ground", PointCloud2, f"{NS}/ground", rel),
+              ("markers", MarkerArray, f"{NS}/obstacle_markers", rel),
+              ("clearance", OccupancyGrid, f"{NS}/clearance", rel),
+              ("dem", PointCloud2, f"{NS}/dem", latched),
+              ("dem_info", MapMetaData, f"{NS}/dem_info", latched),
+              ("diag", DiagnosticArray, "/diagnostics", rel)]
+    subs = [ros_node.create_subscription(msg_type, topic, got[key].append, qos)
+            for key, msg_type, topic, qos in wanted]
     det = _start("lidar_obstacles.ros.obstacle_detector")
     dem = _start("lidar_obstacles.ros.dem_builder", "-p", "dem.publish_rate:=2.0",
                  "-p", f"export.path:={tmp_path / 'live_dem.tif'}")
