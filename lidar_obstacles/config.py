@@ -158,7 +158,11 @@ class ObstaclesConfig:
     noise_radius: float = param(3.0, "a point with fewer than `noise_min_neighbours` within "
                                 "this radius is noise (7)", "m", min=0.1, max=50.0)
     noise_min_neighbours: int = param(1, "see `noise_radius`", "points", min=0, max=100)
-    wire_linearity: float = param(0.6, "PCA linearity (l1-l2)/l1 above which a neighbourhood "
+    feature_radius: float = param(2.0, "radius of the neighbourhood whose covariance gives "
+                                  "each point's shape (linear, planar, rough); it must span "
+                                  "several scan lines of a roof", "m", min=0.2, max=10.0,
+                                  tunable=True)
+    wire_linearity: float = param(0.8, "PCA linearity (l1-l2)/l1 above which a neighbourhood "
                                   "is a wire", min=0.0, max=1.0, tunable=True)
     wire_max_slope: float = param(15.0, "wires are at most this steep", "deg", min=0.0,
                                   max=90.0)

@@ -15,6 +15,10 @@ import numpy as np
 from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
 from lidar_obstacles.core.classes import GROUND
 
+TOWER_MEMORY_SECONDS = 60.0  # s: how long a recognised tower is remembered
+TOWER_MEMORY_SIZE = 256  # towers remembered at most (bounded memory on any flight)
+TOWER_MEMORY_RADIUS = 50.0  # m: remembered towers this far outside a cloud are offered
+
 
 @dataclass(frozen=True)
 class ClearanceGrid:
@@ -56,6 +60,22 @@ class ObstacleDetector:
         self.cfg = cfg or ObstacleDetectorConfig()
         self.context = GroundContext(self.cfg.context)
         self._rng = np.random.default_rng(self.cfg.ransac.seed)
+        self._towers = np.zeros((0, 4))  # x, y, radius (m), stamp (s) of towers seen
+
+    def _known_towers(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """(K, 3) remembered towers (x, y, radius m) near the box lo..hi."""
+        t = self._towers
+        near = np.all((t[:, :2] >= lo - TOWER_MEMORY_RADIUS)
+                      & (t[:, :2] <= hi + TOWER_MEMORY_RADIUS), axis=1)
+        return t[near, :3]
+
+    def _remember_towers(self, towers: np.ndarray, stamp: float) -> None:
+        """Keep the towers of the last TOWER_MEMORY_SECONDS, newest first, at most
+        TOWER_MEMORY_SIZE: a strip that catches only a tower's legs still knows it."""
+        new = np.column_stack([towers, np.full(len(towers), stamp)])
+        t = np.concatenate([new, self._towers])
+        t = t[t[:, 3] >= stamp - TOWER_MEMORY_SECONDS]
+        self._towers = t[:TOWER_MEMORY_SIZE]
 
     def reconfigure(self, cfg: ObstacleDetectorConfig) -> None:
         """Take new parameters for the next message; the ground context is kept when its
@@ -99,7 +119,9 @@ class ObstacleDetector:
         t3 = time.perf_counter()
         ob = classify_obstacles(xyz, g.ground, g.height_above_ground, cfg=cfg.obstacles,
                                 intensity=intensity, return_number=return_number,
-                                number_of_returns=number_of_returns, rng=self._rng)
+                                number_of_returns=number_of_returns, rng=self._rng,
+                                known_towers=self._known_towers(lo, hi))
+        self._remember_towers(ob.towers, stamp)
         t4 = time.perf_counter()
         centre = (np.asarray(vehicle_xyz, float)[:2] if vehicle_xyz is not None
                   else (lo + hi) / 2.0)
