@@ -172,7 +172,7 @@ class ObstaclesConfig:
                                     "towers", "m", min=1.0, max=200.0)
     building_min_area: float = param(20.0, "planar roof segments smaller than this are not "
                                      "buildings", "m^2", min=1.0, max=10000.0, tunable=True)
-    building_plane_threshold: float = param(0.15, "RANSAC distance threshold of roof/wall "
+    building_plane_threshold: float = param(0.2, "RANSAC distance threshold of roof/wall "
                                             "planes", "m", min=0.01, max=2.0, tunable=True)
 
 

@@ -95,3 +95,88 @@ def test_clearance_grid_by_hand():
     assert cells[0, 1] == 50  # the wire, 25 m of 50 -> 50 (the tree below it is lower)
     assert cells[2, 2] == 0  # noise is seen but is no obstacle
     assert cells[4, 4] == -1  # nothing fell there
+
+
+def test_local_shape_and_eigenvalues_by_hand():
+    from lidar_obstacles.core.obstacles import local_shape, symmetric_eig3
+
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(500, 3, 3))
+    cov = a @ a.transpose(0, 2, 1)
+    values, axis, normal = symmetric_eig3(cov)
+    ref_values, ref_vectors = np.linalg.eigh(cov)
+    assert np.allclose(values, ref_values[:, ::-1], atol=1e-8)
+    assert np.allclose(np.abs((axis * ref_vectors[:, :, 2]).sum(axis=1)), 1.0)
+    assert np.allclose(np.abs((normal * ref_vectors[:, :, 0]).sum(axis=1)), 1.0)
+    # a line, a plane in scan lines 0.5 m apart, and a ball
+    line = np.column_stack([np.linspace(0, 20, 200), np.zeros(200), np.full(200, 10.0)])
+    gx, gy = np.meshgrid(np.arange(0, 10, 0.1), np.arange(0, 10, 0.5))
+    roof = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, 5.0)])
+    ball = rng.normal(size=(300, 3))
+    for pts, lin, plan in ((line, 0.99, None), (roof, None, 0.5), (ball, None, None)):
+        shape = local_shape(pts, radius=2.0)
+        mid = np.argmin(np.linalg.norm(pts - pts.mean(axis=0), axis=1))
+        if lin:
+            assert shape.linearity[mid] > lin and abs(shape.axis[mid, 2]) < 0.01
+        if plan:  # with k = 10 nearest these roof points lay on one scan line: "linear"
+            assert shape.planarity[mid] > plan and shape.linearity[mid] < 0.5
+            assert abs(shape.normal[mid, 2]) > 0.99 and shape.roughness[mid] < 1e-6
+    assert (local_shape(ball, radius=2.0).linearity < 0.8).mean() > 0.95
+
+
+def _span_through_crown(rng):
+    """A 120 m wire at 20 m through a 12 m crown, a second conductor 0.5 m beside it."""
+    parts, labels = [], []
+    s = np.linspace(-60, 60, 1200)
+    for y in (0.0, 0.5):
+        parts.append(np.column_stack([s, np.full_like(s, y), 20.0 + 0.001 * s ** 2]))
+        labels.append(np.full(len(s), 14))
+    crown = rng.normal(0, 1.0, (6000, 3)) * [3.0, 3.0, 2.0] + [0, 0, 20.0]
+    parts.append(crown)
+    labels.append(np.full(len(crown), 5))
+    trunk = np.column_stack([rng.normal(0, 0.1, (300, 2)), rng.uniform(0.5, 17, 300)])
+    parts.append(trunk)
+    labels.append(np.full(len(trunk), 5))
+    return np.concatenate(parts), np.concatenate(labels)
+
+
+def test_wire_is_followed_through_a_crown():
+    xyz, truth = _span_through_crown(np.random.default_rng(2))
+    res = classify_obstacles(xyz, np.zeros(len(xyz), bool), xyz[:, 2].astype(np.float32),
+                             cfg=CFG.obstacles)
+    c = res.classes
+    in_crown = (truth == 14) & (np.abs(xyz[:, 0]) < 6)
+    assert (c[in_crown] == 14).mean() > 0.9  # not linear there, but on the line
+    assert (c[truth == 14] == 14).mean() > 0.97
+    # leaves off the line are not taken along (those touching it are, harmlessly)
+    off_line = (truth == 5) & (np.minimum(np.abs(xyz[:, 1]), np.abs(xyz[:, 1] - 0.5)) > 0.3)
+    assert (c[off_line] == 14).mean() < 0.01
+
+
+def test_wall_and_roof_are_building_by_their_own_area():
+    rng = np.random.default_rng(3)
+    wall = np.column_stack([rng.uniform(0, 12, 3000), np.zeros(3000), rng.uniform(0.5, 8, 3000)])
+    res = classify_obstacles(wall, np.zeros(len(wall), bool), wall[:, 2].astype(np.float32),
+                             cfg=CFG.obstacles)
+    assert (res.classes == 6).mean() > 0.9  # a footprint of ~12 m^2 but 90 m^2 of wall
+    crown = rng.normal(0, 1.0, (3000, 3)) * [3.0, 3.0, 2.0] + [0, 0, 8]
+    res = classify_obstacles(crown, np.zeros(len(crown), bool), crown[:, 2].astype(np.float32),
+                             cfg=CFG.obstacles)
+    assert (res.classes == 6).mean() < 0.02
+
+
+def test_a_tower_seen_before_is_known_from_its_legs():
+    rng = np.random.default_rng(4)
+    xyz, truth = _scene(rng)
+    ground = truth == 2
+    hag = xyz[:, 2].astype(np.float32)
+    first = classify_obstacles(xyz, ground, hag, cfg=CFG.obstacles)
+    assert len(first.towers) == 2 and np.allclose(np.sort(first.towers[:, 0]), [-40, 40], atol=2)
+    # the next strip holds only the lower 18 m of the towers, and no wire at all
+    strip = (truth != 14) & (xyz[:, 2] < 18)
+    c_alone = classify_obstacles(xyz[strip], ground[strip], hag[strip], cfg=CFG.obstacles)
+    c_known = classify_obstacles(xyz[strip], ground[strip], hag[strip], cfg=CFG.obstacles,
+                                 known_towers=first.towers)
+    legs = truth[strip] == 15
+    assert (c_alone.classes[legs] == 15).mean() < 0.1
+    assert (c_known.classes[legs] == 15).mean() > 0.8

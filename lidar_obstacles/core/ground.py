@@ -12,9 +12,12 @@
 - ``hybrid`` (default) — chosen by measurement (see benchmarks/bench_ground.py): a raster
   progressive morphological filter (Pingel et al. 2013, SMRF) on the grid of lowest points,
   with low blunders removed first; the ground cells' surface is in-painted, points within a
-  slope-dependent band of it are ground, and the surface is rebuilt from them (3 rounds).
-  It is O(N) and raster-only: ~40 x faster than TIN densification (which rebuilds a
-  Delaunay per round) and more accurate on the ISPRS samples with one parameter set.
+  slope-dependent band of it are ground, and the surface is rebuilt from them until the
+  labels repeat (at most 8 rounds). The rebuild rounds give back the convex terrain the
+  opening cuts (ridge crests, terrace rims): ISPRS mean total error 4.47 % -> 4.27 %, kappa
+  0.852 -> 0.857 with one parameter set (3 rounds before). It is O(N) and raster-only:
+  ~40 x faster than TIN densification (which rebuilds a Delaunay per round) and more
+  accurate on the ISPRS samples with one parameter set.
 
 Height above ground of every point comes from the ground TIN (nearest ground point outside
 its hull), never from a sensor height.
@@ -37,7 +40,13 @@ HIGH_SEED_DROP = 5.0  # m: a seed this far above its neighbours is an object's l
 
 @dataclass(frozen=True)
 class HybridSettings:
-    """Raster filter settings (SMRF's, slope 0.2 measured best on ISPRS; no per-site tuning)."""
+    """Raster filter settings (SMRF's, slope 0.2 measured best on ISPRS; no per-site tuning).
+
+    Measured on the 15 ISPRS samples (mean total error, one set for all, 3 rounds): slope
+    0.15 / 0.25 / 0.3 -> 4.54 / 4.53 / 4.95 %; window 12 / 24 / 30 m -> 4.78 / 4.46 /
+    4.46 %; threshold 0.4 / 0.6 m and scalar 0.75 / 2.0 all worse or level; cell 1.5 m is
+    2.7 x faster at 4.48 %, cell 2 m 4.94 %, cell 0.5 m 6.13 %.
+    """
 
     cell: float = 1.0  # m
     slope: float = 0.2  # rise over run that opening may remove per window step
@@ -46,7 +55,10 @@ class HybridSettings:
     scalar: float = 1.25  # extra acceptance per unit of local slope
     low_outlier: float = 2.0  # m below the lowest neighbouring cells: a blunder
     low_window: int = 7  # cells, the neighbourhood of the low-blunder test
-    passes: int = 3  # label / rebuild-surface rounds
+    # Label / rebuild-surface rounds, at most; they stop early once the labels repeat.
+    # ISPRS mean total error / kappa: 3 rounds 4.47 % / 0.852, 8 rounds 4.27 % / 0.857,
+    # 12 rounds no further gain.
+    passes: int = 8
 
 
 @dataclass(frozen=True)
@@ -139,6 +151,25 @@ def tin_densification(xyz: np.ndarray, cfg: TinConfig, *, fixed: np.ndarray | No
     return ground
 
 
+def _relax(out: np.ndarray, missing: np.ndarray, rounds: int) -> None:
+    """`rounds` of 4-neighbour averaging (edge cells repeat themselves) written into the
+    `missing` cells of (rows, cols) `out` in place; the known cells are never changed."""
+    if not rounds or not missing.any():
+        return
+    h, w = out.shape
+    pad = np.empty((h + 2, w + 2))
+    avg = np.empty((h, w))
+    for _ in range(rounds):
+        pad[1:-1, 1:-1] = out
+        pad[0, 1:-1], pad[-1, 1:-1] = out[0], out[-1]
+        pad[1:-1, 0], pad[1:-1, -1] = out[:, 0], out[:, -1]
+        np.add(pad[:-2, 1:-1], pad[2:, 1:-1], out=avg)
+        avg += pad[1:-1, :-2]
+        avg += pad[1:-1, 2:]
+        avg *= 0.25
+        np.copyto(out, avg, where=missing)
+
+
 def inpaint(grid: np.ndarray, smoothing: int = 4) -> np.ndarray:
     """Fill NaN cells of a (rows, cols) grid: averages down a 2 x 2 pyramid until no hole
     is left, then back up, each level's holes taken from the coarser level and relaxed
@@ -165,26 +196,30 @@ def inpaint(grid: np.ndarray, smoothing: int = 4) -> np.ndarray:
         up = np.repeat(np.repeat(top, 2, axis=0), 2, axis=1)[: fine.shape[0], : fine.shape[1]]
         missing = np.isnan(fine)
         out = np.where(missing, up, fine)
-        for _ in range(smoothing):
-            pad = np.pad(out, 1, mode="edge")
-            avg = (pad[:-2, 1:-1] + pad[2:, 1:-1] + pad[1:-1, :-2] + pad[1:-1, 2:]) * 0.25
-            out = np.where(missing, avg, out)
+        _relax(out, missing, smoothing)
         top = out
     return top
 
 
-def bilinear(grid: np.ndarray, origin: np.ndarray, cell: float, xy: np.ndarray) -> np.ndarray:
-    """Values of a (rows = y, cols = x) grid of cell-centred values at points (M, 2)."""
-    f = (xy - origin) / cell - 0.5
-    h, w = grid.shape
-    x = np.clip(f[:, 0], 0, w - 1)
-    y = np.clip(f[:, 1], 0, h - 1)
-    x0 = np.minimum(np.floor(x).astype(np.int64), max(w - 2, 0))
-    y0 = np.minimum(np.floor(y).astype(np.int64), max(h - 2, 0))
-    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    fx, fy = x - x0, y - y0
-    return (grid[y0, x0] * (1 - fx) * (1 - fy) + grid[y0, x1] * fx * (1 - fy)
-            + grid[y1, x0] * (1 - fx) * fy + grid[y1, x1] * fx * fy)
+class Bilinear:
+    """Bilinear lookup of (rows = y, cols = x) grids of cell-centred values at fixed points:
+    the four corner indices and weights are computed once and reused for every grid."""
+
+    def __init__(self, shape: tuple[int, int], origin: np.ndarray, cell: float,
+                 xy: np.ndarray) -> None:
+        f = (xy - origin) / cell - 0.5
+        h, w = shape
+        x = np.clip(f[:, 0], 0, w - 1)
+        y = np.clip(f[:, 1], 0, h - 1)
+        x0 = np.minimum(np.floor(x).astype(np.int64), max(w - 2, 0))
+        y0 = np.minimum(np.floor(y).astype(np.int64), max(h - 2, 0))
+        x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+        fx, fy = x - x0, y - y0
+        self.idx = np.stack([y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1])
+        self.wts = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy])
+
+    def __call__(self, grid: np.ndarray) -> np.ndarray:
+        return (grid.ravel()[self.idx] * self.wts).sum(axis=0)
 
 
 def _grid_min(flat: np.ndarray, z: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -231,6 +266,7 @@ def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
         objects |= (last - opened) > cfg.slope * radius * c
         last = opened
     surface = inpaint(np.where(objects | np.isnan(zmin), np.nan, zmin))
+    at = Bilinear(shape, origin, c, pts[:, :2])
     if min(surface.shape) >= 2:
         gy, gx = np.gradient(surface, c)
         slope_grid = np.hypot(gx, gy)
@@ -238,17 +274,21 @@ def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
         slope_grid = np.zeros_like(surface)
     # Slope capped at 1 (45 degrees): at the foot of a wall or a tower leg the raster
     # gradient is huge, and an uncapped band would take the structure for ground.
-    slope = np.minimum(bilinear(slope_grid, origin, c, pts[:, :2]), 1.0)
-    band = cfg.threshold + cfg.scalar * slope
+    band = cfg.threshold + cfg.scalar * np.minimum(at(slope_grid), 1.0)
     ground = np.zeros(n, bool)
-    for _ in range(cfg.passes):
-        dz = pts[:, 2] - bilinear(surface, origin, c, pts[:, :2])
-        ground = (np.abs(dz) <= band) & ~low[:n]
-        # Refine: the surface of the points now taken as ground (and the context).
-        keep = np.concatenate([ground, np.ones(len(allp) - n, bool)])
+    context = np.ones(len(allp) - n, bool)
+    for i in range(cfg.passes):
+        labels = (np.abs(pts[:, 2] - at(surface)) <= band) & ~low[:n]
+        if i and np.array_equal(labels, ground):
+            break  # converged: the surface would be rebuilt from the same points
+        ground = labels
+        # Refine: the surface of the points now taken as ground (and the context). Each
+        # round lets ground the opening cut off (terrace rims, ridges) rejoin once its
+        # neighbours have raised the surface under it.
+        keep = np.concatenate([ground, context])
         if keep.any():
             surface = inpaint(_grid_min(flat[keep], z[keep], shape))
-    z_ground = bilinear(surface, origin, c, pts[:, :2])
+    z_ground = at(surface)
     return ground, z_ground
 
 

@@ -53,6 +53,7 @@ WIRE_MIN_RUN = 10.0  # m: wire candidates joined into shorter runs are not wires
 WIRE_LINK = 4.0  # m: voxel edge joining wire candidates into runs (sparse earth wires have 2-3 m gaps)
 WIRE_STEP = 1.5  # m: how far a wire is followed from a known wire point per round
 WIRE_TUBE = 0.15  # m: off a wire's line a followed point may lie (measured: 0.25 took leaves)
+WIRE_DRIFT = 0.5  # m: off the line of the known wire a followed chain may end (sag)
 WIRE_FOLLOW_ROUNDS = 12  # rounds of following: ~18 m of crown or clutter
 TOWER_WIRE_GAP = 3.0  # m: a tower has wire points this close to it
 SAG_NEAR, SAG_FAR = 15.0, 40.0  # m: ring around a tower where its wires must hang lower
@@ -62,7 +63,7 @@ TOWER_FOOT_REACH = 1.0  # m: ground points this close to a tower's lowest points
 TOWER_RADIUS = 0.25  # towers: points within this share of the height from the top's axis
 SLENDER = 0.8  # towers/poles: horizontal extent below this share of their height
 PLANAR_SHARE = 0.4  # buildings: share of a planar patch on its main RANSAC plane
-BUILDING_PLANARITY = 0.4  # (l2 - l3) / l1 of a roof or wall neighbourhood
+BUILDING_PLANARITY = 0.5  # (l2 - l3) / l1 of a roof or wall neighbourhood
 BUILDING_REACH = 1.5  # m: rough points this close to a roof (edges, chimneys) join it
 
 
@@ -138,7 +139,8 @@ def symmetric_eig3(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 class LocalShape:
     """Per point, the shape of its neighbourhood (points within a radius): linearity
     (l1-l2)/l1 and planarity (l2-l3)/l1 (M,); main axis and normal (M, 3) unit vectors;
-    roughness sqrt(l3) (M,) metres, the spread off the best local plane; neighbour count."""
+    roughness sqrt(l3) (M,) metres, the spread off the best local plane; count (M,) of
+    neighbouring voxels."""
 
     linearity: np.ndarray
     planarity: np.ndarray
@@ -150,36 +152,47 @@ class LocalShape:
 
 def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHBOURS
                 ) -> LocalShape:
-    """Shape features of (M, 3) points (m) from the covariance of the neighbours within
-    `radius` m (at most `max_neighbours`, the nearest).
+    """Shape features of (M, 3) points (m) from the covariance of their neighbourhood: the
+    centroids of the voxels (edge radius / 4) within `radius` m (at most `max_neighbours`,
+    the nearest) of the point's own voxel. Points of one voxel share its shape.
 
-    A radius, not k nearest: with k = 10 a roof scanned in lines 0.5 m apart looks linear
-    (its ten nearest points lie on one scan line) and was taken for wires; within 1.5 m a
-    roof spans several lines and is planar, while a wire, even a bundle of sub-conductors
-    0.4 m apart, stays linear."""
+    A radius, not k nearest points: with k = 10 a roof scanned in lines 0.5 m apart looks
+    linear (its ten nearest points lie on one scan line) and was taken for wires; within
+    2 m a roof spans several lines and is planar, while a wire, even a bundle of
+    sub-conductors 0.5 m apart, stays linear. Voxel centroids, not points: a densely
+    scanned wire would fill max_neighbours within a few decimetres of the point, too short
+    a piece to tell a line from a bundle; and a dense cloud costs no more than a sparse."""
     m = len(xyz)
+    z, up = np.zeros(m), np.tile([0.0, 0.0, 1.0], (m, 1))
     if m < 3:
-        z, up = np.zeros(m), np.tile([0.0, 0.0, 1.0], (m, 1))
         return LocalShape(z, z, up, up, z, np.ones(m))
-    k = min(max_neighbours, m)
-    dist, nn = cKDTree(xyz).query(xyz, k=k, distance_upper_bound=radius, workers=-1)
+    ijk = np.floor((xyz - xyz.min(axis=0)) / (radius / 8.0)).astype(np.int64)
+    _, voxel, count = np.unique(ijk, axis=0, return_inverse=True, return_counts=True)
+    voxel = voxel.ravel()
+    centre = np.stack([np.bincount(voxel, xyz[:, a]) for a in range(3)], axis=1) / count[:, None]
+    v = len(centre)
+    if v < 3:
+        return LocalShape(z, z, up, up, z, count[voxel].astype(np.float64))
+    k = min(max_neighbours, v)
+    dist, nn = cKDTree(centre).query(centre, k=k, distance_upper_bound=radius, workers=-1)
     inside = np.isfinite(dist)
-    nn = np.where(inside, nn, np.arange(m)[:, None])
+    nn = np.where(inside, nn, np.arange(v)[:, None])
     weight = inside.astype(np.float64)
-    count = weight.sum(axis=1)
-    nb = xyz[nn]
-    nb -= ((nb * weight[:, :, None]).sum(axis=1) / count[:, None])[:, None, :]
+    n_near = weight.sum(axis=1)
+    nb = centre[nn]
+    nb -= ((nb * weight[:, :, None]).sum(axis=1) / n_near[:, None])[:, None, :]
     nb *= weight[:, :, None]
-    # The six distinct covariance terms directly: ~10 x faster than an einsum over (m,k,3,3).
-    cov = np.empty((m, 3, 3))
+    # The six distinct covariance terms directly: ~10 x faster than an einsum over (v,k,3,3).
+    cov = np.empty((v, 3, 3))
     for a in range(3):
         for b in range(a, 3):
-            cov[:, a, b] = cov[:, b, a] = (nb[:, :, a] * nb[:, :, b]).sum(axis=1) / count
+            cov[:, a, b] = cov[:, b, a] = (nb[:, :, a] * nb[:, :, b]).sum(axis=1) / n_near
     w, axis, normal = symmetric_eig3(cov)
     w = np.maximum(w, 0.0)
     l1 = np.maximum(w[:, 0], 1e-12)
-    return LocalShape((w[:, 0] - w[:, 1]) / l1, (w[:, 1] - w[:, 2]) / l1, axis, normal,
-                      np.sqrt(w[:, 2]), count)
+    return LocalShape(((w[:, 0] - w[:, 1]) / l1)[voxel], ((w[:, 1] - w[:, 2]) / l1)[voxel],
+                      axis[voxel], normal[voxel], np.sqrt(w[:, 2])[voxel],
+                      n_near[voxel])
 
 
 def voxel_components(xyz: np.ndarray, size: float) -> np.ndarray:
@@ -261,38 +274,47 @@ def _wires(xyz: np.ndarray, cand: np.ndarray, hag: np.ndarray, shape: LocalShape
     return is_wire
 
 
+def _off_line(p: np.ndarray, origin: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """(K,) distance (m) of points p (K, 3) from the lines through origin (K, 3) along the
+    unit axis (K, 3)."""
+    d = p - origin
+    return np.linalg.norm(d - (d * axis).sum(axis=1)[:, None] * axis, axis=1)
+
+
 def _follow_wires(pts: np.ndarray, allowed: np.ndarray, axis: np.ndarray,
                   is_wire: np.ndarray) -> None:
-    """Grow `is_wire` (M,) in place: an allowed point within WIRE_STEP of a wire point and within
-    WIRE_TUBE of the line through it along its axis is wire too, and carries that axis on.
-    A wire through a crown is no longer linear in its neighbourhood (the leaves around it
-    are not), but it stays on its line; ~1.5 m per round, so a 15 m crown takes 10."""
+    """Grow `is_wire` (M,) in place: an allowed point within WIRE_STEP of a wire point and
+    within WIRE_TUBE of that wire point's line is wire too. A wire through a crown is no
+    longer linear in its neighbourhood (the leaves around it are not), but it stays on its
+    line; ~1.5 m per round, so a 15 m crown takes 10 rounds. A followed point carries on the
+    axis of the wire point it was followed from and the origin of the known wire where the
+    chain began: the chain may bend with the sag, but not drift leaf by leaf more than
+    WIRE_DRIFT from that wire's line."""
+    origin = pts.copy()
     line_axis = axis.copy()
     front = np.flatnonzero(is_wire)
     for _ in range(WIRE_FOLLOW_ROUNDS):
         free = np.flatnonzero(allowed & ~is_wire)
         if len(free) == 0 or len(front) == 0:
             return
-        tree = cKDTree(pts[front])
-        near = tree.query_ball_point(pts[free], r=WIRE_STEP, workers=-1)
+        near = cKDTree(pts[front]).query_ball_point(pts[free], r=WIRE_STEP, workers=-1)
         lens = np.fromiter((len(x) for x in near), np.int64, len(near))
         if lens.sum() == 0:
             return
         owner = np.repeat(free, lens)
         src = front[np.concatenate([np.asarray(x, np.int64) for x in near if len(x)])]
-        d = pts[owner] - pts[src]
-        along = (d * line_axis[src]).sum(axis=1)
-        perp = np.linalg.norm(d - along[:, None] * line_axis[src], axis=1)
-        ok = perp < WIRE_TUBE
+        perp = _off_line(pts[owner], pts[src], line_axis[src])
+        ok = (perp < WIRE_TUBE) & (_off_line(pts[owner], origin[src], line_axis[src])
+                                   < WIRE_DRIFT)
         if not ok.any():
             return
-        # each new point takes the axis of the wire point it lines up with best
+        # each new point joins the line it lies closest to
         best = np.lexsort((perp[ok], owner[ok]))
         first = np.ones(len(best), bool)
         first[1:] = owner[ok][best[1:]] != owner[ok][best[:-1]]
         new, via = owner[ok][best[first]], src[ok][best[first]]
         is_wire[new] = True
-        line_axis[new] = line_axis[via]
+        origin[new], line_axis[new] = origin[via], line_axis[via]
         front = new
 
 
@@ -427,7 +449,12 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
             is_tower[local[column]] = True
             feet.append(p[(off_axis < TOWER_BASE * top_h) & (h < 0.3 * top_h)])
             found.append((float(top[0]), float(top[1]), TOWER_RADIUS * top_h))
-    return is_tower, feet, np.array(found).reshape(-1, 3)
+    # pieces of one tower (arms cut off by the wires) are one tower: the widest stands
+    towers: list[tuple[float, float, float]] = []
+    for t in sorted(found, key=lambda t: -t[2]):
+        if all(np.hypot(t[0] - k[0], t[1] - k[1]) >= k[2] for k in towers):
+            towers.append(t)
+    return is_tower, feet, np.array(towers).reshape(-1, 3)
 
 
 def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground: np.ndarray, *,
