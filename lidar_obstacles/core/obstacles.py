@@ -46,6 +46,7 @@ from lidar_obstacles.core.classes import (
 )
 from lidar_obstacles.core.ransac import ransac_plane
 
+PARALLEL_MIN = 20000  # queries from which cKDTree runs on all cores
 MAX_NEIGHBOURS = 32  # of the shape neighbourhoods: more add little but cost time
 BELOW_GROUND_NOISE = 1.5  # m: points this far below the ground surface are noise
 WIRE_GAP = 2.5  # m: a wire point has no other point from this far below it up to 0.5 m
@@ -91,6 +92,23 @@ class ObstacleClasses:
     objects: tuple[ObstacleObject, ...]
     timings: dict[str, float] = field(default_factory=dict)
     towers: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+
+def _workers(n_queries: int) -> int:
+    """Threads for a cKDTree query: all cores only when the query is large enough to pay
+    for starting them (~1 ms per call on a 2-core machine, more than a small query costs)."""
+    return -1 if n_queries >= PARALLEL_MIN else 1
+
+
+def row_keys(ints: np.ndarray) -> np.ndarray:
+    """(M,) int64 key per row of (M, D) integers, equal keys for equal rows: 1-D keys make
+    np.unique ~30 x faster than np.unique(axis=0)."""
+    ints = ints - ints.min(axis=0)
+    span = ints.max(axis=0) + 1
+    key = np.zeros(len(ints), np.int64)
+    for d in range(ints.shape[1]):
+        key = key * span[d] + ints[:, d]
+    return key
 
 
 def symmetric_eig3(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -167,14 +185,15 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
     if m < 3:
         return LocalShape(z, z, up, up, z, np.ones(m))
     ijk = np.floor((xyz - xyz.min(axis=0)) / (radius / 8.0)).astype(np.int64)
-    _, voxel, count = np.unique(ijk, axis=0, return_inverse=True, return_counts=True)
+    _, voxel, count = np.unique(row_keys(ijk), return_inverse=True, return_counts=True)
     voxel = voxel.ravel()
     centre = np.stack([np.bincount(voxel, xyz[:, a]) for a in range(3)], axis=1) / count[:, None]
     v = len(centre)
     if v < 3:
         return LocalShape(z, z, up, up, z, count[voxel].astype(np.float64))
     k = min(max_neighbours, v)
-    dist, nn = cKDTree(centre).query(centre, k=k, distance_upper_bound=radius, workers=-1)
+    dist, nn = cKDTree(centre).query(centre, k=k, distance_upper_bound=radius,
+                                     workers=_workers(v))
     inside = np.isfinite(dist)
     nn = np.where(inside, nn, np.arange(v)[:, None])
     weight = inside.astype(np.float64)
@@ -229,7 +248,7 @@ def _empty_below(xyz: np.ndarray, cand: np.ndarray, others: np.ndarray) -> np.nd
     if len(others) == 0 or len(cand) == 0:
         return ok
     tree = cKDTree(xyz[others, :2])
-    lists = tree.query_ball_point(xyz[cand, :2], r=1.0, workers=-1)
+    lists = tree.query_ball_point(xyz[cand, :2], r=1.0, workers=_workers(len(cand)))
     lens = np.fromiter((len(x) for x in lists), np.int64, len(lists))
     if lens.sum() == 0:
         return ok
@@ -297,7 +316,8 @@ def _follow_wires(pts: np.ndarray, allowed: np.ndarray, axis: np.ndarray,
         free = np.flatnonzero(allowed & ~is_wire)
         if len(free) == 0 or len(front) == 0:
             return
-        near = cKDTree(pts[front]).query_ball_point(pts[free], r=WIRE_STEP, workers=-1)
+        near = cKDTree(pts[front]).query_ball_point(pts[free], r=WIRE_STEP,
+                                                    workers=_workers(len(free)))
         lens = np.fromiter((len(x) for x in near), np.int64, len(near))
         if lens.sum() == 0:
             return
@@ -335,8 +355,10 @@ def patch_area(pts: np.ndarray, labels: np.ndarray, cell: float = 1.0) -> np.nda
     second = np.cross(normal, axis)
     uv = np.floor(np.column_stack([(rel * axis[labels]).sum(axis=1),
                                    (rel * second[labels]).sum(axis=1)]) / cell).astype(np.int64)
-    cells = np.unique(np.column_stack([labels, uv]), axis=0)
-    return np.bincount(cells[:, 0], minlength=n_labels) * cell ** 2
+    uv -= uv.min(axis=0)
+    per_label = int(uv[:, 0].max() + 1) * int(uv[:, 1].max() + 1)
+    cells = np.unique((labels * per_label + uv[:, 0] * int(uv[:, 1].max() + 1) + uv[:, 1]))
+    return np.bincount(cells // per_label, minlength=n_labels) * cell ** 2
 
 
 def _buildings(xyz: np.ndarray, cand: np.ndarray, shape: LocalShape, allowed: np.ndarray,
@@ -372,7 +394,7 @@ def _buildings(xyz: np.ndarray, cand: np.ndarray, shape: LocalShape, allowed: np
     others = np.flatnonzero(allowed & ~is_building)
     if is_building.any() and len(others):
         dist, _ = cKDTree(xyz[cand[is_building]]).query(
-            xyz[cand[others]], distance_upper_bound=BUILDING_REACH, workers=-1)
+            xyz[cand[others]], distance_upper_bound=BUILDING_REACH, workers=_workers(len(others)))
         is_building[others[np.isfinite(dist)]] = True
     return is_building
 
@@ -483,7 +505,8 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
         k = cfg.noise_min_neighbours + 1
         if k > 1:
             dist, _ = cKDTree(xyz[nong]).query(xyz[nong], k=k,
-                                               distance_upper_bound=cfg.noise_radius, workers=-1)
+                                               distance_upper_bound=cfg.noise_radius,
+                                               workers=_workers(len(nong)))
             isolated = ~np.isfinite(dist[:, -1])
         else:
             isolated = np.zeros(len(nong), bool)
@@ -532,7 +555,8 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
             # the ground points right under a tower's legs, not its whole footprint
             ground_ids = np.flatnonzero(classes == GROUND)
             dist, _ = cKDTree(np.concatenate(feet)).query(
-                xyz[ground_ids], distance_upper_bound=TOWER_FOOT_REACH, workers=-1)
+                xyz[ground_ids], distance_upper_bound=TOWER_FOOT_REACH,
+                workers=_workers(len(ground_ids)))
             classes[ground_ids[np.isfinite(dist)]] = TOWER
         for mask in (is_building, is_wire):
             ids = cand[mask]

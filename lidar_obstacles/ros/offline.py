@@ -209,6 +209,9 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
     from lidar_obstacles.ros.node_base import PoseBuffer
 
     poses = PoseBuffer()
+    # the same ground filter twice on every cloud is wasted: the DEM takes the detector's
+    share_ground = (detector is not None and dem is not None
+                    and dem.shares_ground_with(detector.cfg))
     max_age = (detector or dem).cfg.odometry_max_age  # type: ignore[union-attr]
     publish_period_ns = int(1e9 / dem.cfg.dem.publish_rate) if dem is not None else 0
     next_dem_ns: int | None = None
@@ -238,12 +241,15 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                 continue
             t0 = time.perf_counter()
             try:
+                ground_xyz = None
                 if detector is not None:
-                    outputs, _ = detector.process(msg, pose)
+                    outputs, det_stats = detector.process(msg, pose)
                     for name, out in outputs:
                         yield "/" + name, record.stamp_ns, out
+                    if share_ground:
+                        ground_xyz = det_stats["ground_xyz"]
                 if dem is not None:
-                    dem.process(msg, pose)
+                    dem.process(msg, pose, ground_xyz=ground_xyz)
             except CloudFormatError as exc:
                 stats.rejected += 1
                 key = str(exc).split(":")[0][:80]

@@ -124,7 +124,8 @@ class DetectorStage:
             out.append(("clearance", messages.occupancy(c.cells, c.origin, c.resolution, hdr)))
         stats = {"points_in": n, "ground": int(ground.sum()), "obstacles": int((~ground).sum()),
                  "objects": len(result.objects), "timings": dict(result.timings),
-                 "seconds": time.perf_counter() - t0, "classes": classes}
+                 "seconds": time.perf_counter() - t0, "classes": classes,
+                 "ground_xyz": prep.xyz[ground]}
         return out, stats
 
 
@@ -141,17 +142,38 @@ class DemStage:
         self.cfg = cfg
         self.pipeline.reconfigure(cfg)
 
-    def process(self, msg, pose: Pose | None = None) -> dict:
+    def shares_ground_with(self, detector_cfg: ObstacleDetectorConfig) -> bool:
+        """True when the detector's ground of a message is the ground this stage would
+        find: `dem.ground_source: detector` with the same filter, frame and input limits.
+        `replay` then hands it over instead of filtering every cloud twice."""
+        d, c = detector_cfg, self.cfg
+        return (c.dem.ground_source == "detector" and c.use_odometry == d.use_odometry
+                and c.input.max_points == d.input.max_points
+                and (c.tiling, c.ground, c.tin, c.ransac, c.context)
+                == (d.tiling, d.ground, d.tin, d.ransac, d.context))
+
+    def process(self, msg, pose: Pose | None = None,
+                ground_xyz: np.ndarray | None = None) -> dict:
+        """Add one message's ground to the DEM. ground_xyz: (G, 3) float64 metres, the
+        message's ground already found by a DetectorStage that `shares_ground_with` it."""
         cfg = self.cfg
         t0 = time.perf_counter()
+        vehicle = pose.position if pose is not None else None
+        if ground_xyz is not None:
+            self.frame_id = pose.frame_id if (pose is not None and cfg.use_odometry) \
+                else msg.header.frame_id
+            self.last_stamp_ns = messages.stamp_ns_of(msg.header)
+            timings = self.pipeline.add_ground(ground_xyz, stamp=self.last_stamp_ns * 1e-9,
+                                               vehicle_xyz=vehicle)
+            return {"points_in": int(msg.width) * int(msg.height), "timings": timings,
+                    "seconds": time.perf_counter() - t0}
         prep = prepare(msg, keep_non_finite=False, max_points=cfg.input.max_points,
                        pose=pose, transform=cfg.use_odometry)
         self.frame_id = prep.frame_id
         self.last_stamp_ns = prep.stamp_ns
-        timings = self.pipeline.process(
-            prep.xyz, stamp=prep.stamp_ns * 1e-9,
-            vehicle_xyz=pose.position if pose is not None else None,
-            intensity=_attr(prep.points, "intensity"))
+        timings = self.pipeline.process(prep.xyz, stamp=prep.stamp_ns * 1e-9,
+                                        vehicle_xyz=vehicle,
+                                        intensity=_attr(prep.points, "intensity"))
         return {"points_in": len(prep.points), "timings": timings,
                 "seconds": time.perf_counter() - t0}
 
