@@ -212,3 +212,37 @@ def test_real_isprs_dem_from_reference_ground():
     grid = build_dem(ground[t.keep], cfg=_cfg(**{"dem.resolution": 2.0}))
     rmse, r2, n = accuracy(grid.sample(ground[t.check, :2]), ground[t.check, 2])
     assert n >= 90 and rmse < 1.0 and r2 > 0.99
+
+
+def test_rolling_kriging_refits_its_variogram_every_ten_updates(monkeypatch):
+    from lidar_obstacles.core import dem as dem_mod
+
+    fits = []
+    real = dem_mod.kriging_variogram
+
+    def counting(*a, **kw):
+        fits.append(1)
+        return real(*a, **kw)
+
+    monkeypatch.setattr(dem_mod, "kriging_variogram", counting)
+    cfg = replace(DemBuilderConfig(), {"dem.interpolation": "kriging", "dem.resolution": 1.0,
+                                       "dem.extent": 60.0})
+    rng = np.random.default_rng(0)
+    roll = RollingDem(cfg)
+    for i in range(12):
+        xy = rng.uniform(0, 40, (1500, 2))
+        xy = xy[(xy[:, 0] % 8) > 2]  # gaps for the interpolator to fill
+        roll.update(np.column_stack([xy, 0.1 * xy[:, 0]]), np.array([20.0, 20.0]), float(i))
+    assert len(fits) == 2  # updates 1 and 11
+    roll.cfg = replace(cfg, {"kriging.neighbours": 24})  # new parameters: refit at once
+    roll.update(np.column_stack([xy, 0.1 * xy[:, 0]]), np.array([20.0, 20.0]), 12.0)
+    assert len(fits) == 3
+    filled = roll.snapshot()
+    centres = filled.cell_centres()
+    inside = np.all((centres > 0.5) & (centres < 39.5), axis=-1)  # kriging only interpolates
+    known = np.isfinite(filled.elevation) & inside
+    assert known.sum() > 1400
+    centres = centres[known]
+    # cells hold the mean of their points, so a plane is reproduced to within its slope
+    # times the offset of that mean from the centre (< 0.05 m here)
+    assert np.allclose(filled.elevation[known], 0.1 * centres[:, 0], atol=0.06)

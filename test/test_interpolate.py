@@ -5,8 +5,10 @@ import numpy as np
 import pytest
 
 from lidar_obstacles.config import KrigingConfig, RbfConfig, RbfnnConfig
-from lidar_obstacles.core.interpolate import (METHODS, degeneracy, fit_variogram, interpolate,
-                                              merge_coincident, train_rbfnn)
+from lidar_obstacles.config import DemBuilderConfig
+from lidar_obstacles.core.interpolate import (METHODS, Variogram, choose_nugget, degeneracy,
+                                              fit_variogram, interpolate, kriging_variogram,
+                                              merge_coincident, tin, train_rbfnn)
 from lidar_obstacles.errors import CloudFormatError
 
 
@@ -178,3 +180,80 @@ def test_rbfnn_uses_intensity_when_asked():
     out = interpolate("rbfnn", xy, z, q, rbfnn_cfg=cfg, intensity=inten,
                       query_intensity=np.array([10.0, 100.0]))
     assert out == pytest.approx([0.1, 1.0], abs=0.05)
+
+
+def test_rbfnn_generalises_and_adds_units_where_error_is_largest():
+    xy = _samples(3000, seed=7)
+    z = 2.0 * np.sin(xy[:, 0] / 10.0) + np.cos(xy[:, 1] / 8.0)
+    q = _samples(500, seed=8)
+    truth = 2.0 * np.sin(q[:, 0] / 10.0) + np.cos(q[:, 1] / 8.0)
+    net = train_rbfnn(xy, z, goal=1e-3, spread=0.5, max_neurons=300)
+    assert np.sqrt(np.mean((net.predict(q) - truth) ** 2)) < 0.05  # held out: no overfit
+    # newrb's rule: the first unit sits on the sample farthest from the mean (the bias)
+    first = train_rbfnn(xy, z, goal=1e-12, spread=0.5, max_neurons=1)
+    worst = np.argmax(np.abs(z - z.mean()))
+    assert np.allclose(first.centres[0] * first.std + first.mean, xy[worst])
+
+
+def test_tin_scattered_queries_fast_and_same_as_ordered():
+    # Qhull's walk fell back to a search over all triangles for random-order queries
+    # (0.5-5 s here); tin() visits them in row order.
+    xy = np.random.default_rng(3).uniform(0, 300, (4000, 2))
+    z = plane(xy)
+    q = np.random.default_rng(4).uniform(-10, 310, (16000, 2))
+    import time
+    t0 = time.perf_counter()
+    out = tin(xy, z, q)
+    assert time.perf_counter() - t0 < 1.0
+    inside = np.isfinite(out)
+    assert inside.mean() > 0.85 and np.allclose(out[inside], plane(q[inside]), atol=1e-6)
+    order = np.argsort(q[:, 0])
+    again = tin(xy, z, q[order])
+    both = np.isfinite(again) & inside[order]
+    assert np.mean(np.isfinite(again) != inside[order]) < 1e-3  # only points on the hull
+    assert np.allclose(again[both], out[order][both], atol=1e-9)
+
+
+def test_nugget_cross_validation_exact_without_noise_smooth_with_noise():
+    xy = _samples(3000, seed=9)
+    smooth = 0.5 * np.sin(xy[:, 0] / 7.0) + 0.3 * np.cos(xy[:, 1] / 5.0)
+    vg = fit_variogram(xy, smooth, model="spherical", neighbours=16)
+    assert choose_nugget(xy, smooth, vg, neighbours=16).nugget == 0.0
+    noisy = smooth + np.random.default_rng(10).normal(0, 0.05, len(xy))
+    chosen = kriging_variogram(xy, noisy, cfg=KrigingConfig())
+    assert chosen.nugget > 0.0
+    # the chosen nugget predicts held-out truth better than the exact interpolator
+    q = _queries(5, 45, 0.7)
+    truth = 0.5 * np.sin(q[:, 0] / 7.0) + 0.3 * np.cos(q[:, 1] / 5.0)
+    exact = Variogram(chosen.model, 0.0, chosen.partial_sill, chosen.range_)
+
+    def err(v):
+        return np.sqrt(np.mean((interpolate("kriging", xy, noisy, q, variogram=v) - truth) ** 2))
+
+    assert err(chosen) < 0.9 * err(exact)
+    # too few samples to cross-validate: the fitted variogram is kept
+    assert choose_nugget(xy[:100], noisy[:100], vg, neighbours=16) == vg
+
+
+def test_default_interpolator_not_worse_than_tin_and_idw_on_noisy_terrain():
+    """The rule bench_dem.py checks on real data, on a synthetic survey: rolling terrain
+    with a ditch, 3 cm noise, thinned to 20 % and 80 %, scored on every held-out point."""
+    rng = np.random.default_rng(11)
+    xy = rng.uniform(0, 60, (12000, 2))
+
+    def terrain(p):
+        return (0.8 * np.sin(p[:, 0] / 9.0) * np.cos(p[:, 1] / 11.0)
+                - 0.5 * np.exp(-((p[:, 0] - 30) / 2.0) ** 2))
+
+    z = terrain(xy) + rng.normal(0, 0.03, len(xy))
+    default = DemBuilderConfig().dem.interpolation
+    for keep in (0.2, 0.8):
+        n = int(keep * len(xy))
+        train, test = slice(0, n), slice(n, None)
+
+        def rmse(m):
+            p = interpolate(m, xy[train], z[train], xy[test])
+            ok = np.isfinite(p)
+            return np.sqrt(np.mean((p[ok] - terrain(xy[test][ok])) ** 2))
+
+        assert rmse(default) <= min(rmse("tin"), rmse("idw"))

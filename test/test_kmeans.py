@@ -174,3 +174,26 @@ def test_real_isprs_geometric_ground():
     precision = (found.ground & truth).sum() / found.ground.sum()
     assert precision > 0.95  # measured 0.988
     assert found.ground.sum() > 0.3 * truth.sum()
+
+
+def test_elbow_sweep_runs_every_restart_for_every_k(monkeypatch):
+    """k = 1..10 with 10 restarts is 100 Lloyd runs, each from its own K-means++ seeds."""
+    from lidar_obstacles.core import kmeans as km
+
+    seeds, runs = [], [0]
+    seed_fn, lloyd_fn = km._kmeanspp_1d, km._lloyd_1d
+
+    def seeding(*a, **kw):
+        seeds.append(tuple(out := seed_fn(*a, **kw)))
+        return out
+
+    def lloyd(*a, **kw):
+        runs[0] += 1
+        return lloyd_fn(*a, **kw)
+
+    monkeypatch.setattr(km, "_kmeanspp_1d", seeding)
+    monkeypatch.setattr(km, "_lloyd_1d", lloyd)
+    x = np.random.default_rng(0).normal(size=5000)  # continuous: no early stop at SSE 0
+    res = km.elbow_kmeans(x, max_k=10, restarts=10, rng=0)
+    assert len(res.sse) == 10 and runs[0] == 100 and len(seeds) == 100
+    assert len(set(seeds[30:40])) > 1  # the restarts of one k start from different seeds

@@ -19,8 +19,9 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import Delaunay, QhullError
 
-from lidar_obstacles.config import DemBuilderConfig, ThinningConfig
-from lidar_obstacles.core.interpolate import degeneracy, interpolate, merge_coincident
+from lidar_obstacles.config import DemBuilderConfig, KrigingConfig, ThinningConfig
+from lidar_obstacles.core.interpolate import (Variogram, degeneracy, interpolate,
+                                              kriging_variogram, merge_coincident)
 from lidar_obstacles.core.kmeans import kmeans_ground
 from lidar_obstacles.errors import CloudFormatError, ConfigError
 
@@ -186,6 +187,30 @@ def select_ground(xyz: np.ndarray, *, cfg: DemBuilderConfig, intensity: np.ndarr
 # --------------------------------------------------------------------------- grids
 
 
+# The variogram describes the terrain's roughness and the survey's noise, which change
+# over hundreds of metres, not from one message to the next; fitting it (binned fit plus
+# the nugget's cross-validation) cost as much as the kriging itself (~90 of ~170 ms per
+# 50 000-point message on the AHN corridor), so a rolling DEM refits it every 10 updates.
+_REFIT_EVERY = 10
+
+
+class _VariogramCache:
+    """The kriging variogram of a rolling DEM, refitted every ``_REFIT_EVERY`` uses or
+    when the kriging parameters change."""
+
+    def __init__(self) -> None:
+        self._vg: Variogram | None = None
+        self._cfg: KrigingConfig | None = None
+        self._uses = 0
+
+    def get(self, xy: np.ndarray, z: np.ndarray, cfg: KrigingConfig) -> Variogram:
+        """The cached variogram, or one fitted to samples xy (N, 2) m, z (N,) m."""
+        if self._vg is None or self._uses >= _REFIT_EVERY or cfg != self._cfg:
+            self._vg, self._cfg, self._uses = kriging_variogram(xy, z, cfg=cfg), cfg, 0
+        self._uses += 1
+        return self._vg
+
+
 class _Cells:
     """Per-cell sums of a grid window: count, sum of z and of x, y offsets from the
     cell centre, plus the interpolated layer. ``origin_ij`` is the global integer index
@@ -240,9 +265,11 @@ class _Cells:
             self.sums[layer, r, c] += np.bincount(inv, weights=values)
         return slice(int(r.min()), int(r.max()) + 1), slice(int(c.min()), int(c.max()) + 1)
 
-    def refill(self, region: tuple[slice, slice], *, cfg: DemBuilderConfig) -> None:
+    def refill(self, region: tuple[slice, slice], *, cfg: DemBuilderConfig,
+               variograms: _VariogramCache | None = None) -> None:
         """Re-interpolate the empty cells of ``region`` lying within fill_distance of a
-        measured cell, from the measured cells up to 2 fill distances around the region."""
+        measured cell, from the measured cells up to 2 fill distances around the region.
+        ``variograms``: where kriging takes its variogram from (None: fitted here)."""
         rows, cols = self.shape
         reach = int(np.ceil(cfg.dem.fill_distance / self.res))
         r0, r1 = max(region[0].start - reach, 0), min(region[0].stop + reach, rows)
@@ -273,10 +300,14 @@ class _Cells:
         tr, tc = np.nonzero(target)
         qx = (self.origin_ij[0] + c0 + tc + 0.5) * self.res
         qy = (self.origin_ij[1] + r0 + tr + 0.5) * self.res
-        values = interpolate(cfg.dem.interpolation, np.column_stack([sx, sy]), sums[0],
+        samples = np.column_stack([sx, sy])
+        vg = (variograms.get(samples, sums[0], cfg.kriging)
+              if variograms is not None and cfg.dem.interpolation == "kriging" else None)
+        values = interpolate(cfg.dem.interpolation, samples, sums[0],
                              np.column_stack([qx, qy]), kriging_cfg=cfg.kriging,
                              rbf_cfg=cfg.rbf, rbfnn_cfg=cfg.rbfnn,
-                             idw_neighbours=cfg.dem.idw_neighbours, idw_power=cfg.dem.idw_power)
+                             idw_neighbours=cfg.dem.idw_neighbours, idw_power=cfg.dem.idw_power,
+                             variogram=vg)
         self.fill[r0 + tr, c0 + tc] = values.astype(np.float32)
 
     def grid(self, reason: str = "") -> DemGrid:
@@ -363,6 +394,7 @@ class RollingDem:
             side = min(side, max(int(np.ceil(cfg.dem.extent / self._res)), 1))
         self._side = side  # window edge in cells
         self._cells: _Cells | None = None
+        self._variograms = _VariogramCache()
         self.stamp: float | None = None
 
     def _window(self, xyz: np.ndarray, vehicle_xy: np.ndarray | None
@@ -410,7 +442,7 @@ class RollingDem:
         cells = self._frame(xyz, vehicle_xy)
         region = cells.add(xyz)
         if region is not None:
-            cells.refill(region, cfg=self.cfg)
+            cells.refill(region, cfg=self.cfg, variograms=self._variograms)
 
     def snapshot(self) -> DemGrid:
         """The current DEM (a frozen copy)."""
