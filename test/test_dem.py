@@ -233,9 +233,11 @@ def test_rolling_kriging_refits_its_variogram_every_ten_updates(monkeypatch):
         xy = rng.uniform(0, 40, (1500, 2))
         xy = xy[(xy[:, 0] % 8) > 2]  # gaps for the interpolator to fill
         roll.update(np.column_stack([xy, 0.1 * xy[:, 0]]), np.array([20.0, 20.0]), float(i))
-    assert len(fits) == 2  # updates 1 and 11
+        roll.refill()  # as if the DEM were read after every message
+    assert len(fits) == 2  # refills 1 and 11
     roll.cfg = replace(cfg, {"kriging.neighbours": 24})  # new parameters: refit at once
     roll.update(np.column_stack([xy, 0.1 * xy[:, 0]]), np.array([20.0, 20.0]), 12.0)
+    roll.refill()
     assert len(fits) == 3
     filled = roll.snapshot()
     centres = filled.cell_centres()
@@ -246,3 +248,38 @@ def test_rolling_kriging_refits_its_variogram_every_ten_updates(monkeypatch):
     # cells hold the mean of their points, so a plane is reproduced to within its slope
     # times the offset of that mean from the centre (< 0.05 m here)
     assert np.allclose(filled.elevation[known], 0.1 * centres[:, 0], atol=0.06)
+
+
+def test_rolling_dem_fills_gaps_when_read_not_per_message(monkeypatch):
+    from lidar_obstacles.core import dem as dem_mod
+
+    calls = []
+    real = dem_mod.interpolate
+
+    def counting(*a, **kw):
+        calls.append(1)
+        return real(*a, **kw)
+
+    monkeypatch.setattr(dem_mod, "interpolate", counting)
+    cfg = replace(DemBuilderConfig(), {"dem.interpolation": "idw", "dem.resolution": 1.0,
+                                       "dem.extent": 60.0})
+    rng = np.random.default_rng(1)
+    roll = RollingDem(cfg)
+    for i in range(5):  # the window follows the vehicle between reads
+        xy = rng.uniform(0, 40, (1500, 2)) + [2.0 * i, 0.0]
+        xy = xy[(xy[:, 0] % 8) > 2]
+        roll.update(np.column_stack([xy, 0.1 * xy[:, 0]]), np.array([20.0 + 2 * i, 20.0]), i)
+    assert calls == []
+    grid = roll.snapshot()
+    assert len(calls) == 1
+    gap = (grid.interpolated == 1) & np.isfinite(grid.elevation)
+    assert gap.any()
+    rows, cols = grid.elevation.shape
+    x = grid.origin[0] + (np.arange(cols) + 0.5) * grid.resolution
+    y = grid.origin[1] + (np.arange(rows) + 0.5) * grid.resolution
+    inside = ((x > 3) & (x < 46))[None, :] & ((y > 1) & (y < 39))[:, None]  # not past the data
+    expect = np.broadcast_to(0.1 * x, grid.elevation.shape)
+    assert (gap & inside).sum() > 100
+    assert np.allclose(grid.elevation[gap & inside], expect[gap & inside], atol=0.15)
+    roll.snapshot()
+    assert len(calls) == 1  # nothing new: nothing to fill

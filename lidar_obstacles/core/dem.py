@@ -382,8 +382,8 @@ class RollingDem:
     forgotten. ``dem.extent`` = 0: the grid grows to cover the whole flight, at most
     ``dem.max_cells`` cells (beyond that it becomes a window of that many cells around
     the latest data). Each update adds the points to their cells' sums (measured cells
-    become the mean of all ground seen there) and re-interpolates the empty cells near
-    the new data.
+    become the mean of all ground seen there); the empty cells near the data added since
+    are re-interpolated when the DEM is read (``snapshot``) or on ``refill``.
     """
 
     def __init__(self, cfg: DemBuilderConfig):
@@ -396,6 +396,11 @@ class RollingDem:
         self._cells: _Cells | None = None
         self._variograms = _VariogramCache()
         self.stamp: float | None = None
+        # Global (row0, row1, col0, col1) cell bounds touched since the last refill. The
+        # empty cells are filled when the DEM is read (published at `dem.publish_rate`,
+        # saved), not on every message: the node publishes at 1 Hz and clouds come at
+        # 10 Hz, so filling per message did ten times the interpolation anyone saw.
+        self._dirty: tuple[int, int, int, int] | None = None
 
     def _window(self, xyz: np.ndarray, vehicle_xy: np.ndarray | None
                 ) -> tuple[np.ndarray, tuple[int, int]]:
@@ -442,10 +447,30 @@ class RollingDem:
         cells = self._frame(xyz, vehicle_xy)
         region = cells.add(xyz)
         if region is not None:
-            cells.refill(region, cfg=self.cfg, variograms=self._variograms)
+            oi, oj = int(cells.origin_ij[1]), int(cells.origin_ij[0])
+            box = (region[0].start + oi, region[0].stop + oi,
+                   region[1].start + oj, region[1].stop + oj)
+            d = self._dirty
+            self._dirty = box if d is None else (min(d[0], box[0]), max(d[1], box[1]),
+                                                 min(d[2], box[2]), max(d[3], box[3]))
+
+    def refill(self) -> None:
+        """Interpolate the empty cells near the data added since the last refill."""
+        if self._cells is None or self._dirty is None:
+            return
+        cells, (r0, r1, c0, c1) = self._cells, self._dirty
+        self._dirty = None
+        oi, oj = int(cells.origin_ij[1]), int(cells.origin_ij[0])
+        rows, cols = cells.shape
+        r0, r1 = max(r0 - oi, 0), min(r1 - oi, rows)
+        c0, c1 = max(c0 - oj, 0), min(c1 - oj, cols)
+        if r1 > r0 and c1 > c0:
+            cells.refill((slice(r0, r1), slice(c0, c1)), cfg=self.cfg,
+                         variograms=self._variograms)
 
     def snapshot(self) -> DemGrid:
-        """The current DEM (a frozen copy)."""
+        """The current DEM (a frozen copy), its empty cells near new data filled first."""
         if self._cells is None:
             return empty_grid(self._res, "no ground received yet")
+        self.refill()
         return self._cells.grid()

@@ -55,6 +55,15 @@ class HybridSettings:
     scalar: float = 1.25  # extra acceptance per unit of local slope
     low_outlier: float = 2.0  # m below the lowest neighbouring cells: a blunder
     low_window: int = 7  # cells, the neighbourhood of the low-blunder test
+    # Where the ground surface after the opening is steeper than `steep_slope`, only the
+    # flags of the opening steps up to `steep_window` count (the same run, no extra
+    # opening): large windows cut narrow terraces, embankments and spurs there. ISPRS mean
+    # total error 4.27 -> 4.11 %, kappa 0.857 -> 0.860 (samp24 5.66 -> 4.19 %, samp41
+    # 5.96 -> 5.36 %, samp23 6.69 -> 6.45 %; no sample worse by more than 0.06 points).
+    # Window 3 / 5 / 8 / 10 m: 4.29 / 4.15 / 4.10 / 4.14 %; slope 0.5 / 0.6 / 1.0:
+    # 4.20 / 4.13 / 4.11 %.
+    steep_window: float = 6.0  # m
+    steep_slope: float = 0.8  # rise over run of the ground surface
     # Label / rebuild-surface rounds, at most; they stop early once the labels repeat.
     # ISPRS mean total error / kappa: 3 rounds 4.47 % / 0.852, 8 rounds 4.27 % / 0.857,
     # 12 rounds no further gain.
@@ -158,16 +167,18 @@ def _relax(out: np.ndarray, missing: np.ndarray, rounds: int) -> None:
         return
     h, w = out.shape
     pad = np.empty((h + 2, w + 2))
+    inner = pad[1:-1, 1:-1]  # the grid is relaxed inside the padded copy: one copy, not one per round
+    inner[...] = out
     avg = np.empty((h, w))
     for _ in range(rounds):
-        pad[1:-1, 1:-1] = out
-        pad[0, 1:-1], pad[-1, 1:-1] = out[0], out[-1]
-        pad[1:-1, 0], pad[1:-1, -1] = out[:, 0], out[:, -1]
+        pad[0, 1:-1], pad[-1, 1:-1] = inner[0], inner[-1]
+        pad[1:-1, 0], pad[1:-1, -1] = inner[:, 0], inner[:, -1]
         np.add(pad[:-2, 1:-1], pad[2:, 1:-1], out=avg)
         avg += pad[1:-1, :-2]
         avg += pad[1:-1, 2:]
         avg *= 0.25
-        np.copyto(out, avg, where=missing)
+        np.copyto(inner, avg, where=missing)
+    out[...] = inner
 
 
 def inpaint(grid: np.ndarray, smoothing: int = 4) -> np.ndarray:
@@ -229,6 +240,32 @@ def _grid_min(flat: np.ndarray, z: np.ndarray, shape: tuple[int, int]) -> np.nda
     return out.reshape(shape)
 
 
+def _slope(surface: np.ndarray, cell: float) -> np.ndarray:
+    """(rows, cols) gradient magnitude (rise over run) of a (rows, cols) grid of heights in
+    metres on `cell` m cells; zero for a strip one cell wide (no slope to measure)."""
+    if min(surface.shape) < 2:
+        return np.zeros_like(surface)
+    gy, gx = np.gradient(surface, cell)
+    return np.hypot(gx, gy)
+
+
+def _steep_objects(objects: np.ndarray, near: np.ndarray, slope: np.ndarray,
+                   steep_slope: float) -> np.ndarray:
+    """(rows, cols) bool object cells: the small-window flags `near` where the ground
+    surface's `slope` (rise over run) exceeds `steep_slope`, the full opening's `objects`
+    elsewhere. Returns `objects` itself (the same array) when nothing changes.
+
+    Why: the large windows take a whole narrow terrace, embankment top or spur on steep
+    ground for a building (it is narrower than the window and more than slope x radius
+    above what the window leaves), and steep ground rarely carries large buildings.
+    """
+    steep = slope > steep_slope
+    if not steep.any():
+        return objects
+    mixed = np.where(steep, near, objects)
+    return objects if np.array_equal(mixed, objects) else mixed
+
+
 def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
                          fixed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Raster ground filter (progressive morphological opening, as SMRF, made robust).
@@ -258,20 +295,28 @@ def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
     low = np.isfinite(nb) & (z < nb - cfg.low_outlier)
     if low.any():
         zmin = _grid_min(flat[~low], z[~low], shape)
-    # Progressive opening with growing square windows (separable: O(cells) each).
+    # Progressive opening with growing square windows (separable: O(cells) each). The
+    # flags of the first `steep_window` metres are kept apart: on steep ground they are
+    # the answer (see _steep_objects).
     objects = np.zeros(shape, bool)
     last = inpaint(zmin)
-    for radius in range(1, max(1, int(round(cfg.window / c))) + 1):
+    max_radius = max(1, int(round(cfg.window / c)))
+    steep_radius = min(max(1, int(round(cfg.steep_window / c))), max_radius)
+    near = objects
+    for radius in range(1, max_radius + 1):
         opened = ndimage.grey_opening(last, size=(2 * radius + 1, 2 * radius + 1))
         objects |= (last - opened) > cfg.slope * radius * c
         last = opened
+        if radius == steep_radius:
+            near = objects.copy()
     surface = inpaint(np.where(objects | np.isnan(zmin), np.nan, zmin))
+    slope_grid = _slope(surface, c)
+    mixed = _steep_objects(objects, near, slope_grid, cfg.steep_slope)
+    if mixed is not objects:
+        objects = mixed
+        surface = inpaint(np.where(objects | np.isnan(zmin), np.nan, zmin))
+        slope_grid = _slope(surface, c)
     at = Bilinear(shape, origin, c, pts[:, :2])
-    if min(surface.shape) >= 2:
-        gy, gx = np.gradient(surface, c)
-        slope_grid = np.hypot(gx, gy)
-    else:  # a strip one cell wide has no slope to measure
-        slope_grid = np.zeros_like(surface)
     # Slope capped at 1 (45 degrees): at the foot of a wall or a tower leg the raster
     # gradient is huge, and an uncapped band would take the structure for ground.
     band = cfg.threshold + cfg.scalar * np.minimum(at(slope_grid), 1.0)

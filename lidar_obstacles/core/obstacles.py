@@ -30,7 +30,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.sparse import coo_matrix
+from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
@@ -195,17 +195,18 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
     dist, nn = cKDTree(centre).query(centre, k=k, distance_upper_bound=radius,
                                      workers=_workers(v))
     inside = np.isfinite(dist)
-    nn = np.where(inside, nn, np.arange(v)[:, None])
-    weight = inside.astype(np.float64)
-    n_near = weight.sum(axis=1)
-    nb = centre[nn]
-    nb -= ((nb * weight[:, :, None]).sum(axis=1) / n_near[:, None])[:, None, :]
-    nb *= weight[:, :, None]
-    # The six distinct covariance terms directly: ~10 x faster than an einsum over (v,k,3,3).
+    n_near = inside.sum(axis=1).astype(np.float64)
+    # Neighbourhood sums of 1, x, y, z and the six products in one sparse product
+    # (adjacency @ moments): ~5 x faster than gathering (v, k, 3) neighbour arrays.
+    rows = np.repeat(np.arange(v), inside.sum(axis=1))
+    adjacency = csr_matrix((np.ones(len(rows)), (rows, nn[inside])), shape=(v, v))
+    c = centre - centre.mean(axis=0)  # small numbers: the products keep their precision
+    pairs = [(a, b) for a in range(3) for b in range(a, 3)]
+    sums = adjacency @ np.column_stack([c] + [c[:, a] * c[:, b] for a, b in pairs])
+    mean = sums[:, :3] / n_near[:, None]
     cov = np.empty((v, 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            cov[:, a, b] = cov[:, b, a] = (nb[:, :, a] * nb[:, :, b]).sum(axis=1) / n_near
+    for j, (a, b) in enumerate(pairs):
+        cov[:, a, b] = cov[:, b, a] = sums[:, 3 + j] / n_near - mean[:, a] * mean[:, b]
     w, axis, normal = symmetric_eig3(cov)
     w = np.maximum(w, 0.0)
     l1 = np.maximum(w[:, 0], 1e-12)
