@@ -16,6 +16,9 @@ $(STAMP): requirements.txt requirements-dev.txt setup.py
 
 $(BENCH_STAMP): $(STAMP) requirements-bench.txt
 	$(BIN)/python -m pip install --quiet -r requirements-bench.txt
+	@# open3d's wheel links libusb-1.0 (Debian libusb-1.0-0); without it its anchor is skipped
+	@ldconfig -p | grep -q libusb-1.0 || { [ "$$(id -u)" = 0 ] && apt-get install -y -q libusb-1.0-0; } \
+		|| echo "note: install libusb-1.0-0 for the open3d RANSAC anchor"
 	touch $@
 
 demo: $(STAMP)  ## simulate a UAV flight and run the whole job on it
