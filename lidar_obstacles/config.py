@@ -136,14 +136,19 @@ class RansacConfig:
 
 @dataclass(frozen=True)
 class ContextConfig:
-    radius: float = param(0.0, "ground of earlier messages within this distance of the new "
-                          "message is used as context (0: off; measured on the simulator, "
-                          "edge errors of earlier strips spread, so it is off by default)",
+    radius: float = param(100.0, "ground of earlier messages within this distance of the "
+                          "new message is used as context (0: off). Measured on simulated "
+                          "flights: ground error 1.03/3.04/0.18 % off, 0.92/2.46/0.17 % on "
+                          "(mixed/urban/forest), ~15 ms more per 50k-point message",
                           "m", min=0.0, max=2000.0)
     seconds: float = param(10.0, "ground older than this is forgotten", "s",
                            min=0.0, max=3600.0)
     cell: float = param(1.0, "cell of the rolling ground model kept between messages", "m",
                         min=0.1, max=20.0)
+    margin: float = param(10.0, "only ground at least this far inside a message's footprint "
+                          "is remembered: at the edges the filter saw one side only (urban "
+                          "ground error 10.9 % with margin 0, 2.46 % with 10 m)", "m",
+                          min=0.0, max=500.0)
 
 
 @dataclass(frozen=True)

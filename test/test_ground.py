@@ -6,7 +6,8 @@ import pytest
 
 from lidar_obstacles.config import ObstacleDetectorConfig, replace
 from lidar_obstacles.core.context import GroundContext
-from lidar_obstacles.core.ground import HybridSettings, classify_ground, inpaint, morphological_ground
+from lidar_obstacles.core.ground import (HybridSettings, _steep_objects, classify_ground, inpaint,
+                                         morphological_ground)
 from lidar_obstacles.core.ransac import fit_plane_eigen, ransac_plane, required_trials
 
 METHODS = ("hybrid", "tin", "ransac")
@@ -161,3 +162,47 @@ def test_context_is_bounded_in_space_and_time():
     near = ctx.points_near(np.array([990.0, 0.0]), np.array([1000.0, 10.0]), 9.9)
     assert near is not None and near[:, 0].min() > 990 - 20 - 1
     assert ctx.points_near(np.array([0.0, 0.0]), np.array([10.0, 10.0]), 9.9) is None
+
+
+def test_context_remembers_only_the_inside_of_a_strip():
+    cfg = replace(ObstacleDetectorConfig(), {"context.radius": 50.0, "context.margin": 10.0,
+                                             "context.cell": 1.0}).context
+    ctx = GroundContext(cfg)
+    gx, gy = np.meshgrid(np.arange(0, 60, 0.5), np.arange(0, 30, 0.5))
+    strip = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
+    ctx.update(strip, stamp=0.0, cloud_xy=strip[:, :2])
+    kept = ctx.points_near(np.array([0.0, 0.0]), np.array([60.0, 30.0]), 0.0)
+    # 10 m in from every side of a 60 x 30 m strip: x 10..50, y 10..20
+    assert kept is not None
+    assert kept[:, 0].min() >= 10 - 1 and kept[:, 0].max() <= 50 + 1
+    assert kept[:, 1].min() >= 10 - 1 and kept[:, 1].max() <= 20 + 1
+    assert len(kept) > 0.8 * 40 * 10
+
+
+def test_inpaint_single_known_cell_and_one_row():
+    # One known cell: every level of the pyramid averages to it, so the whole grid is it.
+    g = np.full((9, 13), np.nan)
+    g[4, 7] = 3.5
+    np.testing.assert_array_equal(inpaint(g), np.full((9, 13), 3.5))
+    # A single row (no 2 x 2 pyramid below it): the holes take the mean of the known cells.
+    row = np.array([[1.0, np.nan, 3.0]])
+    np.testing.assert_array_equal(inpaint(row), [[1.0, 2.0, 3.0]])
+
+
+def test_steep_ground_keeps_only_the_small_window_flags():
+    # Full-opening flags, the flags after the first `steep_window` metres, and the ground
+    # slope: cells steeper than 0.8 take the small-window flag, the others keep their own.
+    objects = np.array([[1, 1, 0], [1, 1, 0]], bool)
+    near = np.array([[1, 0, 0], [0, 1, 0]], bool)
+    slope = np.array([[0.9, 0.9, 0.9], [0.5, 0.1, 0.1]])
+    np.testing.assert_array_equal(_steep_objects(objects, near, slope, 0.8),
+                                  [[1, 0, 0], [1, 1, 0]])
+    # No steep cell: the same array comes back (the caller then skips rebuilding the surface)
+    assert _steep_objects(objects, near, np.zeros((2, 3)), 0.8) is objects
+    # A building on flat ground is still flagged by the large windows (slope 0 there)
+    rng = np.random.default_rng(9)
+    ground = _terrain(rng)
+    roof = _box(rng, (20, 20), (44, 44), 106.0)
+    pts = np.concatenate([ground, roof]) - [40, 40, 100]
+    g, _ = morphological_ground(pts, HybridSettings())
+    assert not g[len(ground):].any()

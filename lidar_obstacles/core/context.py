@@ -40,11 +40,19 @@ class GroundContext:
             return None
         return np.column_stack([xy[keep], self._z[keep]])
 
-    def update(self, ground_xyz: np.ndarray, stamp: float) -> None:
-        """Merge a message's ground (N, 3) and forget what is too far or too old."""
+    def update(self, ground_xyz: np.ndarray, stamp: float,
+               cloud_xy: np.ndarray | None = None) -> None:
+        """Merge a message's ground (N, 3) and forget what is too far or too old.
+
+        cloud_xy: (M, 2) all the message's points; when given, only ground at least
+        `context.margin` inside the message's footprint is kept. At a strip's edge the
+        filter saw the terrain from one side only, and a wrong label there, remembered,
+        would be carried into every later strip."""
         if self.cfg.radius <= 0 or self.cfg.seconds <= 0:
             return
         c = self.cfg.cell
+        if cloud_xy is not None and self.cfg.margin > 0 and len(ground_xyz):
+            ground_xyz = ground_xyz[_inside(ground_xyz[:, :2], cloud_xy, c, self.cfg.margin)]
         if len(ground_xyz):
             ij = np.floor(ground_xyz[:, :2] / c).astype(np.int64)
             ij_all = np.concatenate([self._ij, ij])
@@ -66,3 +74,19 @@ class GroundContext:
         fresh = self._t >= stamp - self.cfg.seconds
         keep = near & fresh
         self._ij, self._z, self._t = self._ij[keep], self._z[keep], self._t[keep]
+
+
+def _inside(xy: np.ndarray, cloud_xy: np.ndarray, cell: float, margin: float) -> np.ndarray:
+    """(N,) bool: points xy (N, 2) lying at least `margin` metres inside the footprint of
+    cloud_xy (M, 2), the footprint being its occupied `cell` cells (holes count as
+    outside, as they are in the data)."""
+    from scipy import ndimage
+
+    lo = cloud_xy.min(axis=0) - cell
+    ij = np.floor((cloud_xy - lo) / cell).astype(np.int64)
+    occupied = np.zeros((int(ij[:, 1].max()) + 2, int(ij[:, 0].max()) + 2), bool)
+    occupied[ij[:, 1], ij[:, 0]] = True
+    depth = ndimage.distance_transform_edt(occupied) * cell
+    pij = np.clip(np.floor((xy - lo) / cell).astype(np.int64), 0,
+                  np.array(occupied.shape[::-1]) - 1)
+    return depth[pij[:, 1], pij[:, 0]] >= margin

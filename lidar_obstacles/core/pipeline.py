@@ -115,7 +115,7 @@ class ObstacleDetector:
         g = classify_ground(xyz, tiling=cfg.tiling, ground=cfg.ground, tin=cfg.tin,
                             ransac=cfg.ransac, context_xyz=context_xyz, rng=self._rng)
         t2 = time.perf_counter()
-        self.context.update(xyz[g.ground], stamp)
+        self.context.update(xyz[g.ground], stamp, xyz[:, :2])
         t3 = time.perf_counter()
         ob = classify_obstacles(xyz, g.ground, g.height_above_ground, cfg=cfg.obstacles,
                                 intensity=intensity, return_number=return_number,
@@ -175,7 +175,7 @@ class DemPipeline:
                                 tin=self.cfg.tin, ransac=self.cfg.ransac,
                                 context_xyz=ctx.points_near(lo, hi, stamp),
                                 rng=np.random.default_rng(self.cfg.ransac.seed))
-            ctx.update(xyz[g.ground], stamp)
+            ctx.update(xyz[g.ground], stamp, xyz[:, :2])
             return g.ground
         from lidar_obstacles.core.kmeans import kmeans_ground
 
