@@ -379,9 +379,17 @@ def smrf_ground(xyz: np.ndarray) -> np.ndarray:
     return np.asarray(res.is_ground, dtype=bool)
 
 
-def end_to_end(files: list[str], cfg: DemBuilderConfig, png: bool) -> list[dict]:
+def detector_dem_ground(xyz: np.ndarray, cfg: DemBuilderConfig) -> np.ndarray:
+    """(N,) bool: what `dem.ground_source: detector` feeds the DEM, the obstacle detector's
+    ground within `dem.ground_band` of its surface."""
     from lidar_obstacles.config import ObstacleDetectorConfig
-    from lidar_obstacles.core.pipeline import ObstacleDetector
+    from lidar_obstacles.core.pipeline import ObstacleDetector, bare_earth
+
+    res = ObstacleDetector(ObstacleDetectorConfig()).process(xyz)
+    return bare_earth(res.ground, res.height_above_ground, cfg.dem.ground_band)
+
+
+def end_to_end(files: list[str], cfg: DemBuilderConfig, png: bool) -> list[dict]:
 
     rows = []
     for rel in files:
@@ -398,7 +406,7 @@ def end_to_end(files: list[str], cfg: DemBuilderConfig, png: bool) -> list[dict]
         if png_here:
             write_hillshade_png(OUT / f"dem_{Path(rel).stem}_reference.png", ref)
         sources = {
-            "detector": lambda: ObstacleDetector(ObstacleDetectorConfig()).process(xyz).ground,
+            "detector": lambda: detector_dem_ground(xyz, cfg),
             "pysmrf": lambda: smrf_ground(xyz),
         }
         for source, fn in sources.items():

@@ -283,3 +283,22 @@ def test_rolling_dem_fills_gaps_when_read_not_per_message(monkeypatch):
     assert np.allclose(grid.elevation[gap & inside], expect[gap & inside], atol=0.15)
     roll.snapshot()
     assert len(calls) == 1  # nothing new: nothing to fill
+
+
+def test_dem_takes_bare_earth_from_the_detector_ground():
+    from lidar_obstacles.core.pipeline import DemPipeline, bare_earth
+
+    ground = np.array([True, True, True, False])
+    hag = np.array([0.0, 0.1, 0.4, 3.0], np.float32)
+    assert bare_earth(ground, hag, 0.15).tolist() == [True, True, False, False]
+    assert bare_earth(ground, hag, 0.0).tolist() == ground.tolist()
+    # flat ground with grass 0.3 m high inside the filter's band: the DEM stays on the earth
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(0, 40, (20000, 2))
+    z = np.where(rng.random(20000) < 0.3, 0.3, 0.0) + rng.normal(0, 0.01, 20000)
+    pipe = DemPipeline(replace(DemBuilderConfig(), {"dem.interpolation": "idw",
+                                                    "dem.resolution": 1.0}))
+    pipe.process(np.column_stack([xy, z]), stamp=0.0)
+    grid = pipe.dem.snapshot()
+    assert abs(float(np.nanmedian(grid.elevation))) < 0.03
+    assert np.nanmean(grid.elevation) < 0.05  # with all the detector's ground: ~0.09

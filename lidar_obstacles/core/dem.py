@@ -177,9 +177,12 @@ def select_ground(xyz: np.ndarray, *, cfg: DemBuilderConfig, intensity: np.ndarr
         from lidar_obstacles.core.ground import classify_ground
 
         gen = np.random.default_rng(cfg.ransac.seed if rng is None else rng)
+        from lidar_obstacles.core.pipeline import bare_earth
+
         res = classify_ground(xyz, tiling=cfg.tiling, ground=cfg.ground, tin=cfg.tin,
                               ransac=cfg.ransac, context_xyz=None, rng=gen)
-        return DemGround(np.asarray(res.ground, dtype=bool), "detector")
+        return DemGround(bare_earth(np.asarray(res.ground, dtype=bool),
+                                    res.height_above_ground, cfg.dem.ground_band), "detector")
     found = kmeans_ground(xyz, cfg=cfg.kmeans, intensity=intensity, rng=rng)
     return DemGround(found.ground, "kmeans", found.reason)
 

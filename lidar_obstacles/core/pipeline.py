@@ -137,6 +137,14 @@ class ObstacleDetector:
             timings=timings)
 
 
+def bare_earth(ground: np.ndarray, height_above_ground: np.ndarray, band: float) -> np.ndarray:
+    """(N,) bool: the ground points (N,) bool no higher than `band` m above the ground
+    surface (height_above_ground (N,) m; NaN counts as on it); band 0 keeps them all."""
+    if band <= 0:
+        return ground
+    return ground & ~(np.nan_to_num(np.asarray(height_above_ground, float), nan=0.0) > band)
+
+
 class DemPipeline:
     """Ground selection plus the rolling DEM, for the `dem_builder` node and `replay`."""
 
@@ -176,7 +184,7 @@ class DemPipeline:
                                 context_xyz=ctx.points_near(lo, hi, stamp),
                                 rng=np.random.default_rng(self.cfg.ransac.seed))
             ctx.update(xyz[g.ground], stamp, xyz[:, :2])
-            return g.ground
+            return bare_earth(g.ground, g.height_above_ground, self.cfg.dem.ground_band)
         from lidar_obstacles.core.kmeans import kmeans_ground
 
         return kmeans_ground(xyz, cfg=self.cfg.kmeans, intensity=intensity).ground
@@ -196,10 +204,15 @@ class DemPipeline:
                 "total": t1 - t0 + timings["update"]}
 
     def add_ground(self, ground_xyz: np.ndarray, *, stamp: float = 0.0,
-                   vehicle_xyz: np.ndarray | None = None) -> dict[str, float]:
+                   vehicle_xyz: np.ndarray | None = None,
+                   height_above_ground: np.ndarray | None = None) -> dict[str, float]:
         """Add ground points (G, 3) float64 metres found elsewhere (the obstacle detector's,
-        in `replay`) to the rolling DEM. Returns timings in seconds."""
+        in `replay`) to the rolling DEM; with their height above the detector's surface
+        (G,) m, only the bare earth (`dem.ground_band`). Returns timings in seconds."""
         t0 = time.perf_counter()
+        if height_above_ground is not None:
+            ground_xyz = ground_xyz[bare_earth(np.ones(len(ground_xyz), bool),
+                                               height_above_ground, self.cfg.dem.ground_band)]
         vehicle_xy = None if vehicle_xyz is None else np.asarray(vehicle_xyz, float)[:2]
         self.dem.update(np.asarray(ground_xyz, np.float64).reshape(-1, 3), vehicle_xy, stamp)
         t1 = time.perf_counter()

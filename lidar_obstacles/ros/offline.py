@@ -241,15 +241,16 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                 continue
             t0 = time.perf_counter()
             try:
-                ground_xyz = None
+                shared: dict = {}
                 if detector is not None:
                     outputs, det_stats = detector.process(msg, pose)
                     for name, out in outputs:
                         yield "/" + name, record.stamp_ns, out
                     if share_ground:
-                        ground_xyz = det_stats["ground_xyz"]
+                        shared = {"ground_xyz": det_stats["ground_xyz"],
+                                  "ground_hag": det_stats["ground_hag"]}
                 if dem is not None:
-                    dem.process(msg, pose, ground_xyz=ground_xyz)
+                    dem.process(msg, pose, **shared)
             except CloudFormatError as exc:
                 stats.rejected += 1
                 key = str(exc).split(":")[0][:80]

@@ -125,7 +125,7 @@ class DetectorStage:
         stats = {"points_in": n, "ground": int(ground.sum()), "obstacles": int((~ground).sum()),
                  "objects": len(result.objects), "timings": dict(result.timings),
                  "seconds": time.perf_counter() - t0, "classes": classes,
-                 "ground_xyz": prep.xyz[ground]}
+                 "ground_xyz": prep.xyz[ground], "ground_hag": hag[ground]}
         return out, stats
 
 
@@ -152,10 +152,11 @@ class DemStage:
                 and (c.tiling, c.ground, c.tin, c.ransac, c.context)
                 == (d.tiling, d.ground, d.tin, d.ransac, d.context))
 
-    def process(self, msg, pose: Pose | None = None,
-                ground_xyz: np.ndarray | None = None) -> dict:
-        """Add one message's ground to the DEM. ground_xyz: (G, 3) float64 metres, the
-        message's ground already found by a DetectorStage that `shares_ground_with` it."""
+    def process(self, msg, pose: Pose | None = None, ground_xyz: np.ndarray | None = None,
+                ground_hag: np.ndarray | None = None) -> dict:
+        """Add one message's ground to the DEM. ground_xyz: (G, 3) float64 metres and
+        ground_hag (G,) m, the message's ground and its height above the ground surface,
+        already found by a DetectorStage that `shares_ground_with` this stage."""
         cfg = self.cfg
         t0 = time.perf_counter()
         vehicle = pose.position if pose is not None else None
@@ -164,7 +165,8 @@ class DemStage:
                 else msg.header.frame_id
             self.last_stamp_ns = messages.stamp_ns_of(msg.header)
             timings = self.pipeline.add_ground(ground_xyz, stamp=self.last_stamp_ns * 1e-9,
-                                               vehicle_xyz=vehicle)
+                                               vehicle_xyz=vehicle,
+                                               height_above_ground=ground_hag)
             return {"points_in": int(msg.width) * int(msg.height), "timings": timings,
                     "seconds": time.perf_counter() - t0}
         prep = prepare(msg, keep_non_finite=False, max_points=cfg.input.max_points,
