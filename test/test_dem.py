@@ -214,29 +214,41 @@ def test_real_isprs_dem_from_reference_ground():
     assert n >= 90 and rmse < 1.0 and r2 > 0.99
 
 
-def test_rolling_kriging_refits_its_variogram_every_ten_updates(monkeypatch):
+def _count_calls(monkeypatch, name: str) -> list:
+    """Calls of lidar_obstacles.core.dem.<name> from now on (one entry per call)."""
     from lidar_obstacles.core import dem as dem_mod
 
-    fits = []
-    real = dem_mod.kriging_variogram
+    calls: list = []
+    real = getattr(dem_mod, name)
 
     def counting(*a, **kw):
-        fits.append(1)
+        calls.append(1)
         return real(*a, **kw)
 
-    monkeypatch.setattr(dem_mod, "kriging_variogram", counting)
+    monkeypatch.setattr(dem_mod, name, counting)
+    return calls
+
+
+def _gapped_plane(rng: np.random.Generator, shift: float = 0.0) -> np.ndarray:
+    """(N, 3) points of the plane z = 0.1 x over 40 x 40 m (+ shift in x), with 2 m strips
+    every 8 m left empty for the interpolator to fill."""
+    xy = rng.uniform(0, 40, (1500, 2)) + [shift, 0.0]
+    xy = xy[(xy[:, 0] % 8) > 2]
+    return np.column_stack([xy, 0.1 * xy[:, 0]])
+
+
+def test_rolling_kriging_refits_its_variogram_every_ten_updates(monkeypatch):
+    fits = _count_calls(monkeypatch, "kriging_variogram")
     cfg = replace(DemBuilderConfig(), {"dem.interpolation": "kriging", "dem.resolution": 1.0,
                                        "dem.extent": 60.0})
     rng = np.random.default_rng(0)
     roll = RollingDem(cfg)
     for i in range(12):
-        xy = rng.uniform(0, 40, (1500, 2))
-        xy = xy[(xy[:, 0] % 8) > 2]  # gaps for the interpolator to fill
-        roll.update(np.column_stack([xy, 0.1 * xy[:, 0]]), np.array([20.0, 20.0]), float(i))
+        roll.update(_gapped_plane(rng), np.array([20.0, 20.0]), float(i))
         roll.refill()  # as if the DEM were read after every message
     assert len(fits) == 2  # refills 1 and 11
     roll.cfg = replace(cfg, {"kriging.neighbours": 24})  # new parameters: refit at once
-    roll.update(np.column_stack([xy, 0.1 * xy[:, 0]]), np.array([20.0, 20.0]), 12.0)
+    roll.update(_gapped_plane(rng), np.array([20.0, 20.0]), 12.0)
     roll.refill()
     assert len(fits) == 3
     filled = roll.snapshot()
@@ -251,24 +263,13 @@ def test_rolling_kriging_refits_its_variogram_every_ten_updates(monkeypatch):
 
 
 def test_rolling_dem_fills_gaps_when_read_not_per_message(monkeypatch):
-    from lidar_obstacles.core import dem as dem_mod
-
-    calls = []
-    real = dem_mod.interpolate
-
-    def counting(*a, **kw):
-        calls.append(1)
-        return real(*a, **kw)
-
-    monkeypatch.setattr(dem_mod, "interpolate", counting)
+    calls = _count_calls(monkeypatch, "interpolate")
     cfg = replace(DemBuilderConfig(), {"dem.interpolation": "idw", "dem.resolution": 1.0,
                                        "dem.extent": 60.0})
     rng = np.random.default_rng(1)
     roll = RollingDem(cfg)
     for i in range(5):  # the window follows the vehicle between reads
-        xy = rng.uniform(0, 40, (1500, 2)) + [2.0 * i, 0.0]
-        xy = xy[(xy[:, 0] % 8) > 2]
-        roll.update(np.column_stack([xy, 0.1 * xy[:, 0]]), np.array([20.0 + 2 * i, 20.0]), i)
+        roll.update(_gapped_plane(rng, shift=2.0 * i), np.array([20.0 + 2 * i, 20.0]), i)
     assert calls == []
     grid = roll.snapshot()
     assert len(calls) == 1

@@ -41,12 +41,15 @@ def _scene(rng):
     return xyz, np.concatenate(labels)
 
 
+def _classified_scene(seed: int):
+    """The synthetic corridor, its truth, ground mask, height above ground and classes."""
+    xyz, truth = _scene(np.random.default_rng(seed))
+    ground, hag = truth == 2, xyz[:, 2].astype(np.float32)
+    return xyz, truth, ground, hag, classify_obstacles(xyz, ground, hag, cfg=CFG.obstacles)
+
+
 def test_classes_of_a_synthetic_corridor():
-    rng = np.random.default_rng(0)
-    xyz, truth = _scene(rng)
-    ground = truth == 2
-    hag = xyz[:, 2].astype(np.float32)
-    res = classify_obstacles(xyz, ground, hag, cfg=CFG.obstacles)
+    xyz, truth, ground, hag, res = _classified_scene(0)
     c = res.classes
     legs = np.array([(tx, sy * 4.0) for tx in (-44.0, -36.0, 36.0, 44.0) for sy in (-1, 1)])
     leg_dist = np.linalg.norm(xyz[:, None, :2] - legs[None], axis=2).min(axis=1)
@@ -166,11 +169,7 @@ def test_wall_and_roof_are_building_by_their_own_area():
 
 
 def test_a_tower_seen_before_is_known_from_its_legs():
-    rng = np.random.default_rng(4)
-    xyz, truth = _scene(rng)
-    ground = truth == 2
-    hag = xyz[:, 2].astype(np.float32)
-    first = classify_obstacles(xyz, ground, hag, cfg=CFG.obstacles)
+    xyz, truth, ground, hag, first = _classified_scene(4)
     assert len(first.towers) == 2 and np.allclose(np.sort(first.towers[:, 0]), [-40, 40], atol=2)
     # the next strip holds only the lower 18 m of the towers, and no wire at all
     strip = (truth != 14) & (xyz[:, 2] < 18)
