@@ -61,8 +61,11 @@ class InputConfig:
         "auto", "QoS reliability of the `points` subscription: `auto` matches the publishers "
         "seen on the topic (reliable when all are reliable), the others force it",
         choices=("auto", "reliable", "best_effort"), read_only=True)
-    depth: int = param(2, "keep-last depth of the `points` subscription", "messages",
-                       min=1, max=100, read_only=True)
+    depth: int = param(1, "keep-last depth of the `points` subscription: 1 processes the "
+                       "newest cloud and drops one that waited (publish-to-obstacles latency "
+                       "p50/p95 116/190 ms at 10 Hz on 2 cores, 208/302 ms with depth 2); "
+                       "raise it to process every cloud when the machine keeps up",
+                       "messages", min=1, max=100, read_only=True)
     keep_non_finite: bool = param(
         False, "keep points with NaN/Inf coordinates (they are never classified); "
         "false drops them")
