@@ -57,6 +57,7 @@ WIRE_TUBE = 0.15  # m: off a wire's line a followed point may lie (measured: 0.2
 WIRE_DRIFT = 0.5  # m: off the line of the known wire a followed chain may end (sag)
 WIRE_FOLLOW_ROUNDS = 12  # rounds of following: ~18 m of crown or clutter
 TOWER_WIRE_GAP = 3.0  # m: a tower has wire points this close to it
+TOWER_PEAK = 5.0  # m: wire this little above a tower's top hangs from its peak
 SAG_NEAR, SAG_FAR = 15.0, 40.0  # m: ring around a tower where its wires must hang lower
 SAG_MIN_DROP = 0.3  # m: how much lower (the median wire there)
 TOWER_BASE = 0.2  # a tower's legs stand within this share of its height from its axis
@@ -407,7 +408,8 @@ def _wires_sag_away(top_xy: np.ndarray, touching: np.ndarray, wire_xyz: np.ndarr
     top_xy (2,) is the object's top, touching (T, 3) the wire points next to it. A catenary
     is highest at its supports, so away from a tower its wires are lower (a 300 m span with
     8 m of sag drops ~4 m in 40 m); at a tree under the line the wires run level or rise
-    towards the next tower on at least one side. The top wire decides (95th percentiles):
+    towards the next tower on at least one side (wire on one side only cannot tell them
+    apart: then the attachment decides). The top wire decides (95th percentiles):
     a tower carries the highest wire, a tree touches lower ones at most. When the cloud
     holds no wire beyond SAG_NEAR (a narrow strip of a live scan) the attachment alone
     decides; when it holds wire only further than SAG_FAR, the touching pieces are no span."""
@@ -420,10 +422,13 @@ def _wires_sag_away(top_xy: np.ndarray, touching: np.ndarray, wire_xyz: np.ndarr
     direction = np.linalg.eigh(rel.T @ rel)[1][:, -1]
     side = rel @ direction > 0
     z_touch = float(np.percentile(touching[:, 2], 95))
-    for s in (side, ~side):
-        if s.sum() >= 5 and np.percentile(wire_xyz[far[s], 2], 95) > z_touch - SAG_MIN_DROP:
-            return False
-    return True
+    sides = [s for s in (side, ~side) if s.sum() >= 5]
+    if len(sides) < 2:
+        # Wire on one side only: a dead end, or where the data ends. A span rising to a
+        # higher tower need not sag below its low end, so the attachment decides.
+        return True
+    return all(np.percentile(wire_xyz[far[s], 2], 95) <= z_touch - SAG_MIN_DROP
+               for s in sides)
 
 
 def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.ndarray,
@@ -460,15 +465,20 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
         if wire_tree is None:
             continue
         dist, near = wire_tree.query(p[column], distance_upper_bound=TOWER_WIRE_GAP)
-        hit = np.isfinite(dist)
         col_top = p[column, 2].max()
+        # The earth wire hangs from the peak, a thin spike a scanner may miss: wire right
+        # over the top (within TOWER_PEAK) is attached to it, not passing over it.
+        peak = np.asarray(wire_xy_tree.query_ball_point(top, r=TOWER_WIRE_GAP), np.int64)
+        peak = peak[(wire_xyz[peak, 2] >= col_top) & (wire_xyz[peak, 2] <= col_top + TOWER_PEAK)]
+        touching = np.unique(np.concatenate([near[np.isfinite(dist)], peak]))
         over = wire_xy_tree.query_ball_point(p[column & (h > 0.5 * top_h), :2],
                                              r=TOWER_WIRE_GAP, return_sorted=False)
         over_ids = np.unique(np.concatenate([np.asarray(o, np.int64) for o in over]
                                             or [np.zeros(0, np.int64)]))
-        wire_above = bool(len(over_ids)) and bool((wire_xyz[over_ids, 2] > col_top + 1.0).any())
-        if (hit.any() and not wire_above
-                and _wires_sag_away(top, wire_xyz[near[hit]], wire_xyz, wire_xy_tree)):
+        wire_above = bool(len(over_ids)) and bool(
+            (wire_xyz[over_ids, 2] > col_top + TOWER_PEAK).any())
+        if (len(touching) and not wire_above
+                and _wires_sag_away(top, wire_xyz[touching], wire_xyz, wire_xy_tree)):
             is_tower[local[column]] = True
             feet.append(p[(off_axis < TOWER_BASE * top_h) & (h < 0.3 * top_h)])
             found.append((float(top[0]), float(top[1]), TOWER_RADIUS * top_h))
