@@ -179,3 +179,40 @@ def test_a_tower_seen_before_is_known_from_its_legs():
     legs = truth[strip] == 15
     assert (c_alone.classes[legs] == 15).mean() < 0.1
     assert (c_known.classes[legs] == 15).mean() > 0.8
+
+
+def test_a_tall_tree_under_a_span_is_no_tower_but_the_towers_are():
+    """Three spans over 360 m; a 19 m tree stands beside the middle span's wire where it sags
+    lowest, its crown within 2 m of it. The wires rise away from the tree on both sides but
+    sag away from the towers."""
+    rng = np.random.default_rng(6)
+    parts, labels = [], []
+
+    def add(p, c):
+        parts.append(p)
+        labels.append(np.full(len(p), c))
+
+    add(np.column_stack([rng.uniform(-180, 180, (60000, 1)), rng.uniform(-30, 30, (60000, 1)),
+                         rng.normal(0, 0.02, (60000, 1))]), 2)
+    for tx in (-60.0, 60.0):
+        h = rng.uniform(0, 26, 2000)
+        half = 4.0 * (1 - h / 32)
+        add(np.column_stack([tx + rng.choice([-1, 1], 2000) * half,
+                             rng.choice([-1, 1], 2000) * half, h]), 15)
+        add(np.column_stack([np.full(300, tx), rng.uniform(-5.5, 5.5, 300), np.full(300, 25.5)]),
+            15)  # the arm the conductors hang from
+    for a in (-180.0, -60.0, 60.0):  # spans between -180..-60, -60..60, 60..180
+        s = np.linspace(a, a + 120, 1200)
+        mid = a + 60
+        for y in (-5.0, 5.0):
+            add(np.column_stack([s, np.full_like(s, y), 25 - 0.002 * (3600 - (s - mid) ** 2)]), 14)
+    crown = rng.normal(0, 1.0, (4000, 3)) * [2.0, 2.0, 2.0] + [0, -9, 15.5]
+    trunk = np.column_stack([rng.normal(0, 0.1, (300, 1)), rng.normal(-9, 0.1, (300, 1)),
+                             rng.uniform(0.5, 12, (300, 1))])
+    add(np.concatenate([crown[crown[:, 2] < 19.0], trunk]), 5)
+    xyz, truth = np.concatenate(parts), np.concatenate(labels)
+    res = classify_obstacles(xyz, truth == 2, xyz[:, 2].astype(np.float32), cfg=CFG.obstacles)
+    c = res.classes
+    assert (c[truth == 15] == 15).mean() > 0.8
+    assert (c[truth == 5] == 15).mean() < 0.01  # the tree under the span
+    assert len(res.towers) == 2
