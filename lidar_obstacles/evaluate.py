@@ -8,7 +8,7 @@ No ROS install is needed: bags are decoded with rosbags.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,14 +29,12 @@ PUBLISHED_TOTAL_ERROR = {"Axelsson PTD (2000)": 4.82, "CSF (2016)": 4.39,
 @dataclass
 class LabelledCloud:
     """One cloud of a labelled input. xyz: (N, 3) float64 m; reference: (N,) uint8 ASPRS;
-    predicted: (N,) uint8 or None when the pipeline has not run; attrs: optional per-point
-    fields (intensity, return_number, number_of_returns)."""
+    predicted: (N,) uint8 or None when the pipeline has not run."""
 
     stamp: float
     xyz: np.ndarray
     reference: np.ndarray
     predicted: np.ndarray | None = None
-    attrs: dict[str, np.ndarray] = field(default_factory=dict)
     vehicle: np.ndarray | None = None
 
 
@@ -52,9 +50,6 @@ class LabelledInput:
         return sum(len(c.xyz) for c in self.clouds)
 
 
-_ATTRS = ("intensity", "return_number", "number_of_returns")
-
-
 def _from_points(points: np.ndarray, stamp: float) -> LabelledCloud:
     from lidar_obstacles.io.pointcloud2 import xyz_of
 
@@ -62,9 +57,8 @@ def _from_points(points: np.ndarray, stamp: float) -> LabelledCloud:
     if "classification" not in names:
         raise CloudFormatError("clouds have no 'classification' field to evaluate against")
     pred = np.asarray(points["class"], np.uint8) if "class" in names else None
-    attrs = {a: np.asarray(points[a]) for a in _ATTRS if a in names}
     return LabelledCloud(stamp, xyz_of(points), np.asarray(points["classification"], np.uint8),
-                         pred, attrs)
+                         pred)
 
 
 def load_input(path: str | Path, *, topic: str | None = None) -> LabelledInput:
@@ -125,8 +119,7 @@ def run_detector(inp: LabelledInput, cfg: ObstacleDetectorConfig, *,
         clouds = tqdm(clouds, desc=f"detect {inp.name}", disable=None, file=sys.stderr)
     for c in clouds:
         t0 = time.perf_counter()
-        res = det.process(c.xyz, stamp=c.stamp, vehicle_xyz=c.vehicle,
-                          **{k: v for k, v in c.attrs.items()})
+        res = det.process(c.xyz, stamp=c.stamp, vehicle_xyz=c.vehicle)
         latencies.append(time.perf_counter() - t0)
         c.predicted = res.classes
     return latencies

@@ -63,7 +63,6 @@ SAG_MIN_DROP = 0.3  # m: how much lower (the median wire there)
 TOWER_BASE = 0.2  # a tower's legs stand within this share of its height from its axis
 TOWER_FOOT_REACH = 1.0  # m: ground points this close to a tower's lowest points are its legs
 TOWER_RADIUS = 0.25  # towers: points within this share of the height from the top's axis
-SLENDER = 0.8  # towers/poles: horizontal extent below this share of their height
 PLANAR_SHARE = 0.4  # buildings: share of a planar patch on its main RANSAC plane
 BUILDING_PLANARITY = 0.5  # (l2 - l3) / l1 of a roof or wall neighbourhood
 BUILDING_REACH = 1.5  # m: rough points this close to a roof (edges, chimneys) join it
@@ -506,10 +505,7 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
 
 
 def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground: np.ndarray, *,
-                       cfg: ObstaclesConfig, intensity: np.ndarray | None = None,
-                       return_number: np.ndarray | None = None,
-                       number_of_returns: np.ndarray | None = None,
-                       rng: np.random.Generator | None = None,
+                       cfg: ObstaclesConfig, rng: np.random.Generator | None = None,
                        known_towers: np.ndarray | None = None) -> ObstacleClasses:
     """Classes of every point of (N, 3) float64 xyz (m) given the ground mask (N,) bool and
     the height above ground (N,) float32 m (NaN: unknown, taken as 0). known_towers: (K, 3)

@@ -89,10 +89,7 @@ class ObstacleDetector:
         self.cfg = cfg
 
     def process(self, xyz: np.ndarray, *, stamp: float = 0.0,
-                vehicle_xyz: np.ndarray | None = None,
-                intensity: np.ndarray | None = None,
-                return_number: np.ndarray | None = None,
-                number_of_returns: np.ndarray | None = None) -> ObstacleResult:
+                vehicle_xyz: np.ndarray | None = None) -> ObstacleResult:
         """Classify one cloud.
 
         xyz: (N, 3) float64 metres, z up. stamp: seconds (for the ground context's age).
@@ -118,8 +115,7 @@ class ObstacleDetector:
         self.context.update(xyz[g.ground], stamp, xyz[:, :2])
         t3 = time.perf_counter()
         ob = classify_obstacles(xyz, g.ground, g.height_above_ground, cfg=cfg.obstacles,
-                                intensity=intensity, return_number=return_number,
-                                number_of_returns=number_of_returns, rng=self._rng,
+                                rng=self._rng,
                                 known_towers=self._known_towers(lo, hi))
         self._remember_towers(ob.towers, stamp)
         t4 = time.perf_counter()

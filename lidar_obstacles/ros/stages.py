@@ -99,12 +99,9 @@ class DetectorStage:
                        max_points=cfg.input.max_points, pose=pose,
                        transform=cfg.use_odometry)
         finite = np.isfinite(prep.xyz).all(axis=1)
-        kept = prep.points if finite.all() else prep.points[finite]
         result = self.pipeline.process(
             prep.xyz[finite], stamp=prep.stamp_ns * 1e-9,
-            vehicle_xyz=pose.position if pose is not None else None,
-            intensity=_attr(kept, "intensity"), return_number=_attr(kept, "return_number"),
-            number_of_returns=_attr(kept, "number_of_returns"))
+            vehicle_xyz=pose.position if pose is not None else None)
         n = len(prep.points)
         classes = np.full(n, 7, np.uint8)  # non-finite points: noise, never ground
         hag = np.full(n, np.nan, np.float32)
