@@ -237,12 +237,16 @@ def _gapped_plane(rng: np.random.Generator, shift: float = 0.0) -> np.ndarray:
     return np.column_stack([xy, 0.1 * xy[:, 0]])
 
 
+def _rolling_60m(method: str) -> RollingDem:
+    """A rolling DEM of 1 m cells in a 60 m window, filled by `method`."""
+    return RollingDem(replace(DemBuilderConfig(), {"dem.interpolation": method,
+                                                   "dem.resolution": 1.0, "dem.extent": 60.0}))
+
+
 def test_rolling_kriging_refits_its_variogram_every_ten_updates(monkeypatch):
     fits = _count_calls(monkeypatch, "kriging_variogram")
-    cfg = replace(DemBuilderConfig(), {"dem.interpolation": "kriging", "dem.resolution": 1.0,
-                                       "dem.extent": 60.0})
-    rng = np.random.default_rng(0)
-    roll = RollingDem(cfg)
+    roll = _rolling_60m("kriging")
+    cfg, rng = roll.cfg, np.random.default_rng(0)
     for i in range(12):
         roll.update(_gapped_plane(rng), np.array([20.0, 20.0]), float(i))
         roll.refill()  # as if the DEM were read after every message
@@ -264,10 +268,7 @@ def test_rolling_kriging_refits_its_variogram_every_ten_updates(monkeypatch):
 
 def test_rolling_dem_fills_gaps_when_read_not_per_message(monkeypatch):
     calls = _count_calls(monkeypatch, "interpolate")
-    cfg = replace(DemBuilderConfig(), {"dem.interpolation": "idw", "dem.resolution": 1.0,
-                                       "dem.extent": 60.0})
-    rng = np.random.default_rng(1)
-    roll = RollingDem(cfg)
+    roll, rng = _rolling_60m("idw"), np.random.default_rng(1)
     for i in range(5):  # the window follows the vehicle between reads
         roll.update(_gapped_plane(rng, shift=2.0 * i), np.array([20.0 + 2 * i, 20.0]), i)
     assert calls == []
