@@ -9,6 +9,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from lidar_obstacles.core.arrays import single_threaded_blas
 from lidar_obstacles.errors import LidarObstaclesError
 
 SCENES = ("mixed", "corridor", "urban", "forest")
@@ -155,6 +156,7 @@ def run(args: argparse.Namespace) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    single_threaded_blas()
     try:
         summary = run(args)
     except LidarObstaclesError as exc:

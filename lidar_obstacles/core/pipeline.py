@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
+from lidar_obstacles.core.arrays import column_max, column_min
 from lidar_obstacles.core.classes import GROUND
 
 TOWER_MEMORY_SECONDS = 60.0  # s: how long a recognised tower is remembered
@@ -106,7 +107,7 @@ class ObstacleDetector:
             empty = np.zeros(0, bool)
             return ObstacleResult(empty, np.zeros(0, np.uint8), np.zeros(0, np.float32),
                                   np.zeros(0, np.int32), (), None, {"total": 0.0})
-        lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+        lo, hi = column_min(xyz[:, :2]), column_max(xyz[:, :2])
         context_xyz = self.context.points_near(lo, hi, stamp)
         t1 = time.perf_counter()
         g = classify_ground(xyz, tiling=cfg.tiling, ground=cfg.ground, tin=cfg.tin,
@@ -174,7 +175,7 @@ class DemPipeline:
             if self._context is None:
                 self._context = GroundContext(self.cfg.context)
             ctx = self._context
-            lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+            lo, hi = column_min(xyz[:, :2]), column_max(xyz[:, :2])
             g = classify_ground(xyz, tiling=self.cfg.tiling, ground=self.cfg.ground,
                                 tin=self.cfg.tin, ransac=self.cfg.ransac,
                                 context_xyz=ctx.points_near(lo, hi, stamp),

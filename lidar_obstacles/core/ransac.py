@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lidar_obstacles.core.arrays import column_mean, row_norm
+
 
 @dataclass(frozen=True)
 class Plane:
@@ -37,7 +39,7 @@ def fit_plane_eigen(xyz: np.ndarray) -> Plane | None:
     of the points' covariance. None for fewer than 3 points or a degenerate (collinear) set."""
     if len(xyz) < 3:
         return None
-    centre = xyz.mean(axis=0)
+    centre = column_mean(xyz)
     cov = np.cov((xyz - centre).T)
     w, v = np.linalg.eigh(cov)
     if w[1] <= 1e-12 * max(w[2], 1e-300):
@@ -70,7 +72,7 @@ def ransac_plane(xyz: np.ndarray, *, distance_threshold: float, probability: flo
     n = len(xyz)
     if n < 3:
         return RansacResult(None, np.zeros(n, bool), 0, 0)
-    centre = xyz.mean(axis=0)
+    centre = column_mean(xyz)
     pts = xyz - centre  # centred: numerically safe with UTM coordinates
     best_count, best_n, best_d = -1, None, 0.0
     needed, trials = max_trials, 0
@@ -80,7 +82,7 @@ def ransac_plane(xyz: np.ndarray, *, distance_threshold: float, probability: flo
         idx = rng.integers(0, n, size=(m, 3))
         a, b, c = pts[idx[:, 0]], pts[idx[:, 1]], pts[idx[:, 2]]
         normals = np.cross(b - a, c - a)
-        norm = np.linalg.norm(normals, axis=1)
+        norm = row_norm(normals)
         ok = norm > 1e-12
         normals = normals[ok] / norm[ok, None]
         normals *= np.where(normals[:, 2:3] < 0, -1.0, 1.0)

@@ -23,6 +23,7 @@ from rclpy.qos import (
 )
 from sensor_msgs.msg import PointCloud2
 
+from lidar_obstacles.core.arrays import single_threaded_blas
 from lidar_obstacles.errors import ConfigError, LidarObstaclesError
 from lidar_obstacles.ros.params import declare_config, on_parameter_change
 from lidar_obstacles.ros.stages import Pose, pose_of_odometry
@@ -188,6 +189,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
 
     A bad parameter ends with one line on stderr and exit status 2.
     """
+    single_threaded_blas()
     rclpy.init(args=args if args is not None else sys.argv)
     node = None
     try:

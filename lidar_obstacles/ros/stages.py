@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
+from lidar_obstacles.core.arrays import all_columns
 from lidar_obstacles.core.pipeline import DemPipeline, ObstacleDetector
 from lidar_obstacles.errors import CloudFormatError
 from lidar_obstacles.io.pointcloud2 import append_fields, read_points, select_points, xyz_of
@@ -98,7 +99,7 @@ class DetectorStage:
         prep = prepare(msg, keep_non_finite=cfg.input.keep_non_finite,
                        max_points=cfg.input.max_points, pose=pose,
                        transform=cfg.use_odometry)
-        finite = np.isfinite(prep.xyz).all(axis=1)
+        finite = all_columns(np.isfinite(prep.xyz))
         result = self.pipeline.process(
             prep.xyz[finite], stamp=prep.stamp_ns * 1e-9,
             vehicle_xyz=pose.position if pose is not None else None)

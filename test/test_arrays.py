@@ -1,0 +1,35 @@
+"""The column-wise reductions agree with numpy's own; BLAS can be limited to one thread."""
+import numpy as np
+import pytest
+
+from lidar_obstacles.core.arrays import (all_columns, column_max, column_mean, column_min,
+                                         row_norm, single_threaded_blas)
+
+
+@pytest.mark.parametrize("shape", [(1, 3), (7, 2), (5000, 3)])
+def test_reductions_match_numpy(shape):
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=shape) * 1e3
+    assert np.array_equal(column_min(a), a.min(axis=0))
+    assert np.array_equal(column_max(a[:, ::-1]), a[:, ::-1].max(axis=0))
+    assert np.allclose(column_mean(a), a.mean(axis=0), rtol=1e-12, atol=1e-9)
+    ints = rng.integers(-5, 5, size=shape)
+    assert np.array_equal(column_min(ints), ints.min(axis=0))
+    assert column_min(ints).dtype == ints.dtype
+    mask = rng.random(shape) > 0.3
+    assert np.array_equal(all_columns(mask), mask.all(axis=1))
+    assert np.allclose(row_norm(a), np.linalg.norm(a, axis=1))
+
+
+def test_all_columns_does_not_modify_its_input():
+    mask = np.array([[True, False], [True, True]])
+    all_columns(mask)
+    assert mask[0, 0]
+
+
+def test_single_threaded_blas_limits_blas():
+    from threadpoolctl import threadpool_info
+
+    single_threaded_blas()
+    blas = [p for p in threadpool_info() if p["user_api"] == "blas"]
+    assert blas and all(p["num_threads"] == 1 for p in blas)
