@@ -204,8 +204,10 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
     n_near = inside.sum(axis=1).astype(np.float64)
     # Neighbourhood sums of 1, x, y, z and the six products in one sparse product
     # (adjacency @ moments): ~5 x faster than gathering (q, k, 3) neighbour arrays.
-    rows = np.repeat(np.arange(q), inside.sum(axis=1))
-    adjacency = csr_matrix((np.ones(len(rows)), (rows, nn[inside])), shape=(q, v))
+    # Built as CSR directly (each row's neighbours are distinct): converting from
+    # coordinates sorted and summed them, ~3 ms per 50 000-point message.
+    indptr = np.concatenate([[0], np.cumsum(n_near.astype(np.int64))])
+    adjacency = csr_matrix((np.ones(int(indptr[-1])), nn[inside], indptr), shape=(q, v))
     c = centre - column_mean(centre)  # small numbers: the products keep their precision
     pairs = [(a, b) for a in range(3) for b in range(a, 3)]
     sums = adjacency @ np.column_stack([c] + [c[:, a] * c[:, b] for a, b in pairs])
@@ -219,6 +221,27 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
     return LocalShape(((w[:, 0] - w[:, 1]) / l1)[coarse], ((w[:, 1] - w[:, 2]) / l1)[coarse],
                       axis[coarse], normal[coarse], np.sqrt(w[:, 2])[coarse],
                       n_near[coarse])
+
+
+def _isolated(pts: np.ndarray, radius: float, min_neighbours: int) -> np.ndarray:
+    """(M,) bool: points of (M, 3) pts (m) with fewer than `min_neighbours` others within
+    `radius` m. Points of a voxel of edge radius / sqrt(3) are all within radius of each
+    other, so a voxel holding more than `min_neighbours` points settles its points without
+    a search; only the rest are queried (4.8 -> ~1 ms per 50 000-point message). The k
+    nearest within the radius, not a ball count: a 3 m ball in a crown holds hundreds of
+    points and counting them all cost ~7 x more."""
+    isolated = np.zeros(len(pts), bool)
+    if min_neighbours <= 0 or len(pts) == 0:
+        return isolated
+    edge = radius / np.sqrt(3.0) * (1.0 - 1e-9)  # the voxel's diagonal stays inside radius
+    _, voxel, count = np.unique(row_keys(np.floor(pts / edge).astype(np.int64)),
+                                return_inverse=True, return_counts=True)
+    ask = np.flatnonzero(count[voxel.ravel()] <= min_neighbours)
+    if len(ask):
+        dist, _ = cKDTree(pts).query(pts[ask], k=min_neighbours + 1,
+                                     distance_upper_bound=radius, workers=_workers(len(ask)))
+        isolated[ask] = ~np.isfinite(dist.reshape(len(ask), -1)[:, -1])
+    return isolated
 
 
 def _voxel_centroids(xyz: np.ndarray, lo: np.ndarray, edge: float
@@ -525,16 +548,7 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
     classes[nong] = vegetation_class(hag[nong])
     # 1. noise
     if len(nong):
-        # k nearest within the radius, not a ball count: a 3 m ball in a crown holds
-        # hundreds of points and counting them all cost ~7x more.
-        k = cfg.noise_min_neighbours + 1
-        if k > 1:
-            dist, _ = cKDTree(xyz[nong]).query(xyz[nong], k=k,
-                                               distance_upper_bound=cfg.noise_radius,
-                                               workers=_workers(len(nong)))
-            isolated = ~np.isfinite(dist[:, -1])
-        else:
-            isolated = np.zeros(len(nong), bool)
+        isolated = _isolated(xyz[nong], cfg.noise_radius, cfg.noise_min_neighbours)
         noise = isolated | (hag[nong] < -BELOW_GROUND_NOISE)
         classes[nong[noise]] = NOISE
         nong = nong[~noise]
