@@ -216,3 +216,21 @@ def test_a_tall_tree_under_a_span_is_no_tower_but_the_towers_are():
     assert (c[truth == 15] == 15).mean() > 0.8
     assert (c[truth == 5] == 15).mean() < 0.01  # the tree under the span
     assert len(res.towers) == 2
+
+
+def test_isolated_points_match_a_brute_force_count():
+    """The voxel short-cut of the noise test gives exactly the brute-force answer, also
+    for pairs straddling voxel corners and at the radius."""
+    from scipy.spatial.distance import cdist
+
+    from lidar_obstacles.core.obstacles import _isolated
+
+    rng = np.random.default_rng(5)
+    for side in (4.0, 30.0, 300.0):
+        pts = rng.uniform(0, side, (800, 3))
+        pts[:40] = np.round(pts[:40] / (3.0 / np.sqrt(3.0))) * (3.0 / np.sqrt(3.0))  # corners
+        d = cdist(pts, pts)
+        for radius, k in ((3.0, 1), (1.5, 3)):
+            expected = ((d < radius).sum(axis=1) - 1) < k
+            assert np.array_equal(_isolated(pts, radius, k), expected)
+    assert not _isolated(pts, 3.0, 0).any()
