@@ -6,6 +6,7 @@ runs the very stage objects the nodes run.
 """
 from __future__ import annotations
 
+import functools
 import importlib
 import json
 import sys
@@ -32,6 +33,7 @@ OUTPUT_TYPES = {
     "/dem_image": "sensor_msgs/msg/Image", "/dem_info": "nav_msgs/msg/MapMetaData",
 }
 TRANSIENT_LOCAL = {"/dem", "/dem_image", "/dem_info"}
+DEFERRED = ""  # topic of a `run_stages` item that is work to do, not a message (see drain)
 GPS_TO_UNIX = 315_964_800 - 18  # GPS epoch in Unix time, minus the leap seconds since then
 
 
@@ -198,7 +200,10 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
     """Feed every cloud of a bag through the stages, in bag order.
 
     Yields (topic, stamp_ns, message-or-raw-bytes) to write. Malformed clouds are counted
-    and skipped, like the node drops them.
+    and skipped, like the node drops them. When the DEM takes the detector's ground, its
+    work is yielded as (DEFERRED, stamp_ns, work): a callable returning the items to write,
+    to be called in order (see `drain`), so that a consumer may run it on another thread
+    while the next cloud is being classified.
     """
     cloud_topic = reader.pointcloud_topic(topic)
     odom = _odom_topics(reader)
@@ -215,6 +220,19 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
     max_age = (detector or dem).cfg.odometry_max_age  # type: ignore[union-attr]
     publish_period_ns = int(1e9 / dem.cfg.dem.publish_rate) if dem is not None else 0
     next_dem_ns: int | None = None
+
+    def dem_step(msg, pose, shared: dict, stamp_ns: int, record_ns: int) -> list:
+        """Add a cloud to the DEM; its messages when one is due (at `dem.publish_rate`)."""
+        nonlocal next_dem_ns
+        dem.process(msg, pose, **shared)  # type: ignore[union-attr]
+        if next_dem_ns is None:
+            next_dem_ns = stamp_ns + publish_period_ns
+        elif stamp_ns >= next_dem_ns:
+            next_dem_ns = stamp_ns + publish_period_ns
+            return [("/" + name, record_ns, out)
+                    for name, out in dem.dem_outputs(stamp_ns)]  # type: ignore[union-attr]
+        return []
+
     first_ns = last_ns = None
     n_clouds = reader.count([cloud_topic])
     bar = _progress(None, n_clouds, desc)
@@ -249,8 +267,9 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                     if share_ground:
                         shared = {"ground_xyz": det_stats["ground_xyz"],
                                   "ground_hag": det_stats["ground_hag"]}
-                if dem is not None:
-                    dem.process(msg, pose, **shared)
+                dem_items: list = []
+                if dem is not None and not share_ground:
+                    dem_items = dem_step(msg, pose, shared, stamp_ns, record.stamp_ns)
             except CloudFormatError as exc:
                 stats.rejected += 1
                 key = str(exc).split(":")[0][:80]
@@ -259,16 +278,15 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
             stats.latencies.append(time.perf_counter() - t0)
             stats.messages += 1
             stats.points += int(msg.width) * int(msg.height)
-            if dem is not None:
-                if next_dem_ns is None:
-                    next_dem_ns = stamp_ns + publish_period_ns
-                elif stamp_ns >= next_dem_ns:
-                    next_dem_ns = stamp_ns + publish_period_ns
-                    for name, out in dem.dem_outputs(stamp_ns):
-                        yield "/" + name, record.stamp_ns, out
+            if dem is not None and share_ground:
+                # the detector's ground is all the DEM needs: no parsing, nothing to reject
+                yield DEFERRED, record.stamp_ns, functools.partial(
+                    dem_step, msg, pose, shared, stamp_ns, record.stamp_ns)
+            yield from dem_items
         if dem is not None and last_ns is not None:
-            for name, out in dem.dem_outputs(last_ns):
-                yield "/" + name, last_ns, out
+            yield DEFERRED, last_ns, functools.partial(
+                lambda end: [("/" + name, end, out) for name, out in dem.dem_outputs(end)],
+                last_ns)
     finally:
         bar.close()
         stats.wall_seconds = time.perf_counter() - t_start
@@ -278,6 +296,50 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
             stats.bag_seconds = (last_ns - first_ns + period) * 1e-9
 
 
+def drain(item: tuple[str, int, Any]) -> list[tuple[str, int, Any]]:
+    """The items to write for one item of `run_stages`: deferred work is done now."""
+    name, stamp_ns, payload = item
+    return payload() if name == DEFERRED else [item]
+
+
+class _BackgroundWriter:
+    """Does the deferred DEM work, serializes and writes on one thread, in order, while the
+    caller classifies the next cloud (the second core works while the first classifies). The queue
+    is short, so memory stays bounded; an error on the thread is raised in the caller."""
+
+    def __init__(self, bag: BagWriter, depth: int = 4) -> None:
+        import queue
+        import threading
+
+        self._bag = bag
+        self._queue: queue.Queue = queue.Queue(maxsize=depth)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="replay-writer", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while (item := self._queue.get()) is not None:
+            if self._error is not None:
+                continue  # keep taking items so that the producer never blocks for ever
+            try:
+                for name, stamp_ns, msg in drain(item):
+                    self._bag.write(name, stamp_ns, msg if isinstance(msg, bytes) else _serialize(msg))
+            except BaseException as exc:  # noqa: BLE001 - handed to the caller
+                self._error = exc
+
+    def put(self, item: tuple[str, int, Any]) -> None:
+        if self._error is not None:
+            raise self._error
+        self._queue.put(item)
+
+    def close(self) -> None:
+        """Wait for everything queued to be written; raise the thread's error, if any."""
+        self._queue.put(None)
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+
+
 def replay(src: Path, out: Path, *, topic: str | None = None, params_file: Path | None = None,
            storage: str = "mcap", with_dem: bool = True) -> dict:
     """Run both nodes' stages over a bag and write what they would publish."""
@@ -285,6 +347,7 @@ def replay(src: Path, out: Path, *, topic: str | None = None, params_file: Path 
     stats = ReplayStats()
     detector = DetectorStage(det_cfg)
     dem = DemStage(dem_cfg) if with_dem else None
+    t_start = time.perf_counter()
     with BagReader(src) as reader, BagWriter(out, storage=storage) as bag:
         for name, msgtype in OUTPUT_TYPES.items():
             if with_dem or name not in TRANSIENT_LOCAL:
@@ -292,10 +355,14 @@ def replay(src: Path, out: Path, *, topic: str | None = None, params_file: Path 
         for t in reader.topics():
             if t.msgtype != POINTCLOUD2 and t.topic not in OUTPUT_TYPES:
                 bag.add_topic(t.topic, t.msgtype, transient_local=t.topic == CRS_TOPIC)
-        for name, stamp_ns, out_msg in run_stages(reader, topic=topic, detector=detector,
-                                                  dem=dem, stats=stats, passthrough=True):
-            bag.write(name, stamp_ns,
-                      out_msg if isinstance(out_msg, bytes) else _serialize(out_msg))
+        writer = _BackgroundWriter(bag)
+        try:
+            for item in run_stages(reader, topic=topic, detector=detector, dem=dem,
+                                   stats=stats, passthrough=True):
+                writer.put(item)
+        finally:
+            writer.close()
+        stats.wall_seconds = time.perf_counter() - t_start  # the writing included
         if stats.messages == 0:
             raise BagError(f"no cloud of {src} could be processed "
                            f"({stats.rejected} rejected: {stats.reject_reasons})")
