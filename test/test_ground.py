@@ -6,8 +6,10 @@ import pytest
 
 from lidar_obstacles.config import ObstacleDetectorConfig, replace
 from lidar_obstacles.core.context import GroundContext
-from lidar_obstacles.core.ground import (HybridSettings, _steep_objects, classify_ground, inpaint,
-                                         morphological_ground)
+from lidar_obstacles.core.ground import (HybridSettings, _dense_band, _ground_density,
+                                         _Inpainter, _median_trend, _Opening, _slope,
+                                         _steep_objects, _window_extreme, classify_ground,
+                                         inpaint, morphological_ground)
 from lidar_obstacles.core.ransac import fit_plane_eigen, ransac_plane, required_trials
 
 METHODS = ("hybrid", "tin", "ransac")
@@ -206,3 +208,122 @@ def test_steep_ground_keeps_only_the_small_window_flags():
     pts = np.concatenate([ground, roof]) - [40, 40, 100]
     g, _ = morphological_ground(pts, HybridSettings())
     assert not g[len(ground):].any()
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 9), (6, 1), (37, 23), (120, 95)])
+def test_window_extreme_matches_scipy_filters(shape):
+    from scipy import ndimage
+
+    rng = np.random.default_rng(10)
+    grid = np.round(rng.normal(size=shape).cumsum(axis=0), 1)  # ties as well
+    work = (np.empty(4 * grid.size + 10_000), np.empty(4 * grid.size + 10_000))
+    out = np.empty(shape)
+    for radius in (1, 2, 3, 7, 18):
+        for axis in (0, 1):
+            _window_extreme(grid, radius, axis, np.minimum, np.inf, out, work)
+            np.testing.assert_array_equal(out, ndimage.minimum_filter1d(grid, 2 * radius + 1,
+                                                                        axis=axis))
+            _window_extreme(grid, radius, axis, np.maximum, -np.inf, out, work)
+            np.testing.assert_array_equal(out, ndimage.maximum_filter1d(grid, 2 * radius + 1,
+                                                                        axis=axis))
+
+
+def test_progressive_opening_matches_repeated_scipy_openings():
+    # The incremental erosion (squares absorb smaller squares) gives exactly scipy's
+    # opening of the previous opening, radius after radius, and the same object flags.
+    from scipy import ndimage
+
+    rng = np.random.default_rng(11)
+    grid = rng.normal(size=(64, 81)).cumsum(axis=1) * 0.3
+    grid[20:30, 40:52] += 6.0  # a building
+    radii = [1, 2, 3, 4, 5, 6, 8, 10]
+    objects, near = _Opening(grid.shape, 10)(grid, radii, 3, 0.2)
+    last, flags, flags_near = grid, np.zeros(grid.shape, bool), None
+    for r in radii:
+        opened = ndimage.grey_opening(last, size=(2 * r + 1, 2 * r + 1))
+        flags |= (last - opened) > 0.2 * r
+        last = opened
+        if r == 3:
+            flags_near = flags.copy()
+    np.testing.assert_array_equal(objects, flags)
+    np.testing.assert_array_equal(near, flags_near)
+    assert objects[22:28, 42:50].all()
+
+
+def test_inpainter_reused_gives_the_same_as_fresh_and_keeps_known_cells():
+    # Scattered holes (a sparse scan) and a block hole, one workspace for both grids.
+    rng = np.random.default_rng(12)
+    truth = np.add.outer(np.linspace(0, 5, 50), np.linspace(0, 3, 70))
+    a, b = truth.copy(), truth.copy()
+    a[rng.random(a.shape) < 0.6] = np.nan
+    b[10:30, 20:50] = np.inf  # infinite cells are holes too
+    fill = _Inpainter(truth.shape)
+    for grid in (a, b, a):
+        out = fill(grid).copy()
+        np.testing.assert_array_equal(out, inpaint(grid))
+        known = np.isfinite(grid)
+        np.testing.assert_array_equal(out[known], truth[known])
+        assert np.abs(out - truth).max() < 0.5  # a smooth surface is filled smoothly
+
+
+def test_slope_is_numpys_gradient_magnitude():
+    rng = np.random.default_rng(13)
+    for shape in [(2, 2), (3, 7), (40, 31)]:
+        g = rng.normal(size=shape) * 5
+        gy, gx = np.gradient(g, 0.5)
+        np.testing.assert_array_equal(_slope(g, 0.5), np.hypot(gx, gy))
+    assert not _slope(np.ones((1, 5)), 1.0).any()
+
+
+def test_median_trend_of_a_plane_is_the_plane():
+    # Away from the edges (two blocks, where the median window is cut) a plane's block
+    # medians are its block centres and their 3 x 3 median is the centre again.
+    y, x = np.mgrid[0:64, 0:96]
+    plane = 0.3 * x - 0.2 * y + 5.0
+    np.testing.assert_allclose(_median_trend(plane, 8, 3)[16:-16, 16:-16],
+                               plane[16:-16, 16:-16], atol=1e-9)
+    # A 4 x 4 cell block 5 m high (a building left in the ground surface) moves the trend
+    # by less than a tenth of its height.
+    bumped = plane.copy()
+    bumped[18:22, 42:46] += 5.0
+    assert np.abs(_median_trend(bumped, 8, 3) - _median_trend(plane, 8, 3)).max() < 0.5
+    assert _median_trend(np.full((1, 1), 2.0), 8, 3).shape == (1, 1)
+
+
+def test_ground_density_and_dense_band():
+    # 3 x 4 cells of 1 m; ground points: 9 in cell (1, 1), 1 in (0, 3); one context point
+    # in (2, 2). Density = ground points over the 3 x 3 cells around a point, per m^2.
+    shape = (3, 4)
+    flat = np.array([5] * 9 + [3, 0, 10])  # 9 + 1 points, then the (ground) context
+    ground = np.array([True] * 9 + [True, False])
+    d = _ground_density(flat, ground, shape, 1.0)
+    np.testing.assert_allclose(d[:9], 10 / 9)
+    np.testing.assert_allclose(d[9], 1 / 9)  # (0, 3): only itself, (1, 1) is too far
+    np.testing.assert_allclose(d[10], 9 / 9)  # a non-ground point in (0, 0) sees (1, 1)
+    cfg = HybridSettings()
+    band = np.full(4, 0.5 + 0.1)
+    out = _dense_band(band, np.array([0.0, cfg.dense_from, 7.0, 50.0]), cfg)
+    ramp = (7.0 - cfg.dense_from) / (cfg.dense_full - cfg.dense_from)
+    np.testing.assert_allclose(out, [0.6, 0.6, 0.6 - 0.35 * ramp, 0.25])
+    sparse = np.array([0.5, 1.0])
+    assert _dense_band(sparse, np.array([1.0, 2.0]), cfg) is sparse  # nothing dense
+
+
+def test_dense_scans_reject_low_objects_that_sparse_scans_cannot():
+    # 25 m x 25 m patch of 0.25 m-high low objects on flat ground. Dense scan (16 pts/m^2,
+    # ground seen through the objects): the band narrows to 0.15 m and rejects them. The
+    # same scene 0.8 pts/m^2: the 0.5 m band keeps them, as it must for sparse data.
+    rng = np.random.default_rng(14)
+    for density, rejected in ((16.0, 0.95), (0.8, 0.0)):
+        n = int(density * 100 * 100)
+        xy = rng.uniform(0, 100, (n, 2))
+        z = 100 + rng.normal(0, 0.02, n)
+        patch = (np.abs(xy[:, 0] - 50) < 12.5) & (np.abs(xy[:, 1] - 50) < 12.5)
+        low = patch & (rng.random(n) < 0.5)
+        z[low] += 0.25
+        res = _run(np.column_stack([xy, z]))
+        if rejected:
+            assert (~res.ground[low]).mean() > rejected
+            assert res.ground[~low].mean() > 0.99
+        else:
+            assert res.ground[low].mean() > 0.95
