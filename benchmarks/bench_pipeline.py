@@ -154,6 +154,7 @@ def bench_live_latency(seconds: float) -> dict:
 
 def bench_memory(minutes: float) -> dict:
     from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
+    from lidar_obstacles.core.arrays import release_free_memory
     from lidar_obstacles.core.pipeline import DemPipeline, ObstacleDetector
     from lidar_obstacles.core.simulate import SimSettings, simulate_flight
 
@@ -167,6 +168,8 @@ def bench_memory(minutes: float) -> dict:
         xyz = np.column_stack([f.points["x"], f.points["y"], f.points["z"]]).astype(float)
         det.process(xyz, stamp=f.stamp, vehicle_xyz=f.position)
         dem.process(xyz, stamp=f.stamp, vehicle_xyz=f.position, intensity=f.points["intensity"])
+        if i % 10 == 0:
+            release_free_memory()  # the nodes do it once a second (10 clouds)
         if i % 50 == 0:
             dem.dem.snapshot()
             samples.append((i, rss_mb()))

@@ -23,7 +23,7 @@ from rclpy.qos import (
 )
 from sensor_msgs.msg import PointCloud2
 
-from lidar_obstacles.core.arrays import single_threaded_blas
+from lidar_obstacles.core.arrays import release_free_memory, single_threaded_blas
 from lidar_obstacles.errors import ConfigError, LidarObstaclesError
 from lidar_obstacles.ros.params import declare_config, on_parameter_change
 from lidar_obstacles.ros.stages import Pose, pose_of_odometry
@@ -90,6 +90,7 @@ class PipelineNode(Node):
         self.create_timer(1.0, self._update_points_subscription)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(1.0, self._publish_diagnostics)
+        self.create_timer(1.0, release_free_memory)  # flat memory over a long flight
         self.stats: dict[str, Any] = {"received": 0, "processed": 0, "rejected": 0,
                                       "dropped_no_pose": 0, "points_in": 0, "points_out": 0}
         self.reject_reasons: collections.Counter[str] = collections.Counter()
