@@ -36,6 +36,13 @@ def rss_mb() -> float:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
+def peak_mb() -> float:
+    """The process's highest resident size so far (ru_maxrss is in KiB on Linux)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
 def bench_replay(seconds: float) -> dict:
     from lidar_obstacles.ros import offline
 
@@ -169,14 +176,17 @@ def bench_memory(minutes: float) -> dict:
         det.process(xyz, stamp=f.stamp, vehicle_xyz=f.position)
         dem.process(xyz, stamp=f.stamp, vehicle_xyz=f.position, intensity=f.points["intensity"])
         if i % 10 == 0:
-            release_free_memory()  # the nodes do it once a second (10 clouds)
-        if i % 50 == 0:
-            dem.dem.snapshot()
-            samples.append((i, rss_mb()))
-    ref = next(m for i, m in samples if i >= n // 10)
-    return {"minutes": minutes, "messages": n, "rss_after_10pct_mb": round(ref, 1),
-            "rss_end_mb": round(samples[-1][1], 1), "rss_max_mb": round(max(m for _, m in samples), 1),
-            "growth": round(samples[-1][1] / ref - 1.0, 4)}
+            dem.dem.snapshot()  # the DEM is published once a second
+        if i % 100 == 0:
+            # The nodes hand freed pages back every 10 s: resident size right after, and
+            # the peak (what the machine must have), over the flight.
+            release_free_memory()
+            samples.append((i, rss_mb(), peak_mb()))
+    ref = next(s for s in samples if s[0] >= n // 10)
+    return {"minutes": minutes, "messages": n, "rss_after_10pct_mb": round(ref[1], 1),
+            "rss_end_mb": round(samples[-1][1], 1), "growth": round(samples[-1][1] / ref[1] - 1.0, 4),
+            "peak_after_10pct_mb": round(ref[2], 1), "peak_end_mb": round(samples[-1][2], 1),
+            "peak_growth": round(samples[-1][2] / ref[2] - 1.0, 4)}
 
 
 def main() -> None:
@@ -201,7 +211,9 @@ def main() -> None:
         ("DEM publish p95 (tin / idw / kriging), ms",
          " / ".join(f"{res['dem_update'][m]['publish_p95_ms']:.0f}"
                     for m in ("tin", "idw", "kriging")), "-"),
-        (f"memory growth over {minutes:g} min", res["memory"]["growth"], "< 0.10"),
+        (f"memory growth over {minutes:g} min (after the 10 s trims)", res["memory"]["growth"],
+         "< 0.10"),
+        (f"peak memory growth over {minutes:g} min", res["memory"]["peak_growth"], "-"),
     ]
     print("| measure | value | target |\n|---|---|---|")
     for name, value, target in targets:

@@ -68,11 +68,12 @@ def _malloc_trim():
 
 
 def release_free_memory() -> None:
-    """Give the heap's free pages back to the system (the nodes call it once a second).
+    """Give the heap's free pages back to the system (the nodes call it every 10 s).
 
     Each cloud allocates and frees tens of MB of arrays of varying sizes; glibc keeps the
     freed pages, fragmented, and the resident size crept up over a long flight (8 % in
-    4 simulated minutes, 137 -> 163 MB); trimming once a second held it at 108 -> 116 MB."""
+    4 simulated minutes, 137 -> 163 MB); trimmed, it stayed at 108 -> 116 MB. Not more
+    often: the next cloud faults its pages back in (~10 ms more on a 30 ms message)."""
     trim = _malloc_trim()
     if trim is not None:
         trim(0)

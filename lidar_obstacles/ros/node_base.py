@@ -90,7 +90,7 @@ class PipelineNode(Node):
         self.create_timer(1.0, self._update_points_subscription)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(1.0, self._publish_diagnostics)
-        self.create_timer(1.0, release_free_memory)  # flat memory over a long flight
+        self.create_timer(10.0, release_free_memory)  # flat memory over a long flight
         self.stats: dict[str, Any] = {"received": 0, "processed": 0, "rejected": 0,
                                       "dropped_no_pose": 0, "points_in": 0, "points_out": 0}
         self.reject_reasons: collections.Counter[str] = collections.Counter()

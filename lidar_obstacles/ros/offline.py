@@ -278,8 +278,8 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                 continue
             stats.latencies.append(time.perf_counter() - t0)
             stats.messages += 1
-            if stats.messages % 10 == 0:
-                release_free_memory()  # as the nodes do once a second
+            if stats.messages % 100 == 0:
+                release_free_memory()  # as the nodes do every 10 s
             stats.points += int(msg.width) * int(msg.height)
             if dem is not None and share_ground:
                 # the detector's ground is all the DEM needs: no parsing, nothing to reject
