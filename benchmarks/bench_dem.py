@@ -171,7 +171,8 @@ def default_check(rel: str, keep: float, default: str,
     """The rule: RMSE(default) <= min(RMSE(tin), RMSE(idw)), on the 100 check points and on
     up to 5 000 held-out points. ``p_lose_bootstrap``: share of 2000 resamples (with replacement)
     of the 100 check points on which the default loses to the better of tin and idw
-    (near 0.5: a coin toss, the 100 points cannot tell them apart)."""
+    (near 0.5: a coin toss, the 100 points cannot tell them apart); ``p_lose_bootstrap_all``
+    the same over 1000 resamples of the held-out points."""
     def rmse(e, axis=None):
         return np.sqrt(np.nanmean(e ** 2, axis=axis))
 
@@ -183,11 +184,20 @@ def default_check(rel: str, keep: float, default: str,
     boot = np.random.default_rng(0).integers(0, int(ok.sum()), size=(2000, int(ok.sum())))
     sample = {m: rmse(e[ok][boot], axis=1) for m, e in e100.items()}
     lose = sample[default] > np.minimum(sample["tin"], sample["idw"])
+    # the same question on the held-out points: a loss by 1-2 % there was a coin toss on
+    # ISPRS samp41 (p 0.58, 10 wall-foot points held 74 % of the squared error) and samp53
+    okall = np.all([np.isfinite(e) for e in eall.values()], axis=0)
+    sq = {m: e[okall] ** 2 for m, e in eall.items()}
+    n_all = int(okall.sum())
+    boot_all = np.random.default_rng(0).integers(0, n_all, size=(1000, n_all))
+    mse = {m: v[boot_all].mean(axis=1) for m, v in sq.items()}
+    lose_all = mse[default] > np.minimum(mse["tin"], mse["idw"])
     return dict(file=rel, keep=keep, default=default, default_rmse=float(rmse(e100[default])),
                 best_tin_idw=float(best100), ok=bool(rmse(e100[default]) <= best100),
                 p_lose_bootstrap=float(lose.mean()),
                 default_rmse_all=float(rmse(eall[default])), best_tin_idw_all=float(bestall),
-                ok_all=bool(rmse(eall[default]) <= bestall))
+                ok_all=bool(rmse(eall[default]) <= bestall),
+                p_lose_bootstrap_all=float(lose_all.mean()))
 
 
 # --------------------------------------------------------------------------- 3
@@ -380,13 +390,13 @@ def smrf_ground(xyz: np.ndarray) -> np.ndarray:
 
 
 def detector_dem_ground(xyz: np.ndarray, cfg: DemBuilderConfig) -> np.ndarray:
-    """(N,) bool: what `dem.ground_source: detector` feeds the DEM, the obstacle detector's
-    ground within `dem.ground_band` of its surface."""
+    """(N,) bool: what `dem.ground_source: detector` feeds the DEM, the bare earth
+    (`pipeline.bare_earth`: band and ground patches) of the obstacle detector's ground."""
     from lidar_obstacles.config import ObstacleDetectorConfig
-    from lidar_obstacles.core.pipeline import ObstacleDetector, bare_earth
+    from lidar_obstacles.core.pipeline import ObstacleDetector, bare_earth_of
 
     res = ObstacleDetector(ObstacleDetectorConfig()).process(xyz)
-    return bare_earth(res.ground, res.height_above_ground, cfg.dem.ground_band)
+    return bare_earth_of(xyz, res.ground, res.height_above_ground, cfg.dem)
 
 
 def end_to_end(files: list[str], cfg: DemBuilderConfig, png: bool) -> list[dict]:
@@ -507,10 +517,11 @@ def main() -> int:
     n_ok, n_all = sum(c["ok"] for c in checks), sum(c["ok_all"] for c in checks)
     print(f"\n## Default interpolator (`{default}`) vs best of tin/idw: {n_ok}/{len(checks)} "
           f"on the 100 check points, {n_all}/{len(checks)} on up to 5 000 held-out points\n")
-    print("p_lose_bootstrap: share of resamples of the 100 check points on which the default "
-          "loses (0.5 = a coin toss).\n")
+    print("p_lose_bootstrap(_all): share of resamples of the 100 check points (of the held-out "
+          "points) on which the default loses (0.5 = a coin toss).\n")
     print(table(checks, ["file", "keep", "default_rmse", "best_tin_idw", "ok", "p_lose_bootstrap",
-                         "default_rmse_all", "best_tin_idw_all", "ok_all"]))
+                         "default_rmse_all", "best_tin_idw_all", "ok_all",
+                         "p_lose_bootstrap_all"]))
     print("\n## Speed: 10 000 AHN4 ground points -> 200 x 200 grid (best of repeats, s)\n")
     print(table([{"what": k, "value": v} for k, v in spd.items()], ["what", "value"]))
     print("\n## K-means elbow sweep k = 1..10, 10 restarts, AHN4 intensity\n")

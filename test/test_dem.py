@@ -288,12 +288,16 @@ def test_rolling_dem_fills_gaps_when_read_not_per_message(monkeypatch):
 
 
 def test_dem_takes_bare_earth_from_the_detector_ground():
-    from lidar_obstacles.core.pipeline import DemPipeline, bare_earth
+    from lidar_obstacles.core.pipeline import DemPipeline, bare_earth, bare_earth_of
 
+    xyz = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.1], [0.0, 1.0, 0.4], [1.0, 1.0, 3.0]])
     ground = np.array([True, True, True, False])
     hag = np.array([0.0, 0.1, 0.4, 3.0], np.float32)
-    assert bare_earth(ground, hag, 0.15).tolist() == [True, True, False, False]
-    assert bare_earth(ground, hag, 0.0).tolist() == ground.tolist()
+    dem = DemBuilderConfig().dem
+    assert bare_earth_of(xyz, ground, hag, dem).tolist() == [True, True, False, False]
+    assert bare_earth(xyz[:3], hag[:3], dem).tolist() == [True, True, False]
+    no_band = replace(DemBuilderConfig(), {"dem.ground_band": 0.0}).dem
+    assert bare_earth_of(xyz, ground, hag, no_band).tolist() == ground.tolist()
     # flat ground with grass 0.3 m high inside the filter's band: the DEM stays on the earth
     rng = np.random.default_rng(5)
     xy = rng.uniform(0, 40, (20000, 2))
@@ -304,3 +308,85 @@ def test_dem_takes_bare_earth_from_the_detector_ground():
     grid = pipe.dem.snapshot()
     assert abs(float(np.nanmedian(grid.elevation))) < 0.03
     assert np.nanmean(grid.elevation) < 0.05  # with all the detector's ground: ~0.09
+
+
+def _hill(rng: np.random.Generator, n: int = 40000, size: float = 100.0) -> np.ndarray:
+    """Ground points (n, 3) on a smooth hill: z = 12 exp(-r^2 / 30^2) around the centre of
+    a size x size m square (slopes up to 0.34) plus 2 cm noise, ~4 points per m^2."""
+    xy = rng.uniform(0.0, size, (n, 2))
+    r2 = np.sum((xy - size / 2) ** 2, axis=1)
+    return np.column_stack([xy, 12.0 * np.exp(-r2 / 900.0) + rng.normal(0, 0.02, n)])
+
+
+def test_ground_blunders_drop_a_roof_in_a_gap_and_low_blunders_keep_the_hill():
+    from lidar_obstacles.core.dem import ground_blunders
+
+    rng = np.random.default_rng(3)
+    hill = _hill(rng)
+    # a gap 16 m across (a building's footprint) on the hill's flank, and in it a 10 x 10 m
+    # roof 4 m above the ground around it: what kriging spread over the gap on 07CZ2
+    centre = np.array([25.0, 50.0])
+    hill = hill[np.max(np.abs(hill[:, :2] - centre), axis=1) > 8.0]
+    ground_z = 12.0 * np.exp(-np.sum((centre - 50.0) ** 2) / 900.0)
+    roof_xy = centre + rng.uniform(-5.0, 5.0, (400, 2))
+    roof = np.column_stack([roof_xy, np.full(400, ground_z + 4.0)])
+    # three multipath points 25 m under the ground, together (ISPRS samp41 has such)
+    low = np.column_stack([rng.uniform(70, 71, (3, 2)), np.full(3, -25.0)])
+    xyz = np.concatenate([hill, roof, low])
+    drop = ground_blunders(xyz, max_area=400.0, rise=1.0, sink=10.0)
+    assert drop[len(hill):].all()  # the roof and the low blunders
+    assert not drop[:len(hill)].any()  # every point of the smooth hill stays
+    # a patch larger than max_area is not judged (an upper terrace), nor anything with 0
+    assert not ground_blunders(xyz, max_area=50.0, rise=1.0, sink=10.0)[len(hill):-3].any()
+    assert not ground_blunders(xyz, max_area=0.0, rise=1.0, sink=10.0).any()
+
+
+def test_ground_blunders_keep_steep_smooth_ground_and_a_pit():
+    from lidar_obstacles.core.dem import ground_blunders
+
+    rng = np.random.default_rng(4)
+    # a 35-degree slope (rise 0.7 per m) 60 x 60 m, sparse as ISPRS (1 point per 2 m^2),
+    # with an underpass ramp: a 10 x 10 m pit 5 m deep, its walls vertical
+    xy = rng.uniform(0.0, 60.0, (1800, 2))
+    z = 0.7 * xy[:, 0] + rng.normal(0, 0.05, 1800)
+    pit = np.max(np.abs(xy - 30.0), axis=1) < 5.0
+    z[pit] -= 5.0
+    drop = ground_blunders(np.column_stack([xy, z]), max_area=400.0, rise=1.0, sink=10.0)
+    assert not drop.any()
+
+
+def test_bare_earth_in_the_rolling_dem_drops_a_patch_on_top_of_trees():
+    """What `replay` hands the DEM: the detector's ground and its height above the ground
+    surface. A tree crown taken for ground (hag 0: the detector's surface runs through
+    it) in a canopy gap must not become a 6 m hill in the DEM."""
+    from lidar_obstacles.core.pipeline import DemPipeline
+
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(0.0, 60.0, (30000, 2))
+    gap = np.hypot(xy[:, 0] - 30.0, xy[:, 1] - 30.0) < 10.0
+    ground = np.column_stack([xy[~gap], rng.normal(0, 0.02, int((~gap).sum()))])
+    crown_xy = 30.0 + rng.uniform(-3.0, 3.0, (200, 2))
+    crown = np.column_stack([crown_xy, 6.0 + rng.normal(0, 0.3, 200)])
+    pts = np.concatenate([ground, crown])
+    cfg = _cfg(**{"dem.interpolation": "kriging", "dem.resolution": 1.0})
+    pipe = DemPipeline(cfg)
+    pipe.add_ground(pts, stamp=0.0, height_above_ground=np.zeros(len(pts)))
+    grid = pipe.dem.snapshot()
+    assert np.nanmax(np.abs(grid.elevation)) < 0.2
+    off = DemPipeline(replace(cfg, {"dem.patch_area": 0.0}))
+    off.add_ground(pts, stamp=0.0, height_above_ground=np.zeros(len(pts)))
+    assert np.nanmax(off.dem.snapshot().elevation) > 5.0  # what the test guards against
+
+
+def test_ground_blunders_keep_ground_cut_off_on_a_slope():
+    """A disc of real ground on a 0.5 slope, seen through a ring-shaped gap in the ground
+    (canopy all around it): above the ground downhill, below the ground uphill, so not a
+    patch standing on the terrain."""
+    from lidar_obstacles.core.dem import ground_blunders
+
+    rng = np.random.default_rng(6)
+    xy = rng.uniform(0.0, 60.0, (14400, 2))  # 4 points per m^2
+    r = np.hypot(xy[:, 0] - 30.0, xy[:, 1] - 30.0)
+    xy = xy[(r < 3.0) | (r > 9.0)]
+    xyz = np.column_stack([xy, 0.5 * xy[:, 0] + rng.normal(0, 0.02, len(xy))])
+    assert not ground_blunders(xyz, max_area=400.0, rise=1.0, sink=10.0).any()

@@ -17,9 +17,12 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import Delaunay, QhullError
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from lidar_obstacles.config import DemBuilderConfig, KrigingConfig, ThinningConfig
+from lidar_obstacles.core.arrays import column_min
 from lidar_obstacles.core.interpolate import (Variogram, degeneracy, interpolate,
                                               kriging_variogram, merge_coincident)
 from lidar_obstacles.core.kmeans import kmeans_ground
@@ -151,6 +154,98 @@ def thin(xyz: np.ndarray, *, cfg: ThinningConfig,
     return Thinning(keep=np.sort(keep), check=np.sort(check))
 
 
+# --------------------------------------------------------------------------- ground blunders
+
+
+# Two neighbouring patch cells belong to one surface when their lowest points differ by
+# at most _PATCH_STEP + _PATCH_SLOPE * their distance (45 degrees: steep natural ground
+# still joins, a 3 m wall between 2 m cells does not).
+_PATCH_STEP = 0.5  # m
+_PATCH_SLOPE = 1.0  # rise over run
+# Patch cells are this many point spacings wide (and at least _PATCH_MIN_CELL): 1 m cells
+# split the sparse ISPRS ground (1-3.5 m spacing) into fragments and the test then
+# dropped real ground (samp12 end-to-end RMSE 0.79 -> 2.45 m, samp61 0.74 -> 2.32 m).
+_PATCH_SPACINGS = 2.0
+_PATCH_MIN_CELL = 2.0  # m
+# A patch is judged against the highest (lowest) of the this many main-surface cells
+# nearest to each of its cells, not the nearest one alone: real ground cut off on a
+# slope stands above the ground downhill but not above the ground uphill (ISPRS samp53
+# terraces: RMSE 2.474 m judged by the nearest cell, 2.429 m by 16, as with no test;
+# samp23 0.882 -> 0.867 m). Roofs and crowns stand above all the ground around them.
+_PATCH_NEIGHBOURS = 16
+
+
+def _point_spacing(x: np.ndarray, y: np.ndarray) -> float:
+    """Mean point spacing (m) of points x, y (N,) metres from their lower corner: sqrt(area
+    of the occupied 4 m cells / N)."""
+    ix, iy = (x // 4.0).astype(np.int64), (y // 4.0).astype(np.int64)
+    occupied = np.count_nonzero(np.bincount(iy * (int(ix.max()) + 1) + ix))
+    return float(np.sqrt(occupied * 16.0 / len(x)))
+
+
+def ground_blunders(xyz: np.ndarray, *, max_area: float, rise: float,
+                    sink: float) -> np.ndarray:
+    """(N,) bool: ground points (N, 3) float64 metres in small patches that stand apart
+    from the main ground surface: structure tops, tree crowns or bridge decks taken for
+    ground (raised), and clusters of low blunders (sunk).
+
+    The points are binned into cells of 2 point spacings (at least 2 m), each cell at its
+    lowest point; neighbouring cells (8-connected) whose lowest points differ by at most
+    0.5 m + 1.0 x their distance are one surface. Every surface but the largest is a
+    candidate patch: it is dropped when its area is at most ``max_area`` m^2 and more than
+    half its cells lie more than ``rise`` m above the highest (all its points go), or more
+    than ``sink`` m below the lowest (its points that far down go), of the 16 cells of the
+    largest surface nearest to them. So a patch needs a step all around it (a smooth ramp
+    joins it to the ground) and must stand above (below) all the ground around it,
+    however wide the gap between them (kriging would otherwise spread it over that gap).
+    ``max_area`` 0 drops nothing.
+    """
+    if len(xyz) < 2 or max_area <= 0:
+        return np.zeros(len(xyz), bool)
+    # one column at a time: numpy reduces an (N, 2) array row by row (core.arrays)
+    lo = column_min(xyz[:, :2])
+    x, y = xyz[:, 0] - lo[0], xyz[:, 1] - lo[1]
+    cell = max(_PATCH_MIN_CELL, _PATCH_SPACINGS * _point_spacing(x, y))
+    ix, iy = (x // cell).astype(np.int64), (y // cell).astype(np.int64)
+    cols = int(ix.max()) + 3  # a spare column on each side: offsets never wrap
+    cells, inverse = np.unique((iy + 1) * cols + ix + 1, return_inverse=True)
+    inverse = inverse.ravel()
+    zmin = np.full(len(cells), np.inf)
+    np.minimum.at(zmin, inverse, xyz[:, 2])
+    u = len(cells)
+    src, dst = [], []
+    for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
+        pos = np.searchsorted(cells, cells + dr * cols + dc)
+        pos = np.minimum(pos, u - 1)
+        hit = cells[pos] == cells + dr * cols + dc
+        a, b = np.flatnonzero(hit), pos[hit]
+        step = _PATCH_STEP + _PATCH_SLOPE * cell * float(np.hypot(dr, dc))
+        near = np.abs(zmin[a] - zmin[b]) <= step
+        src.append(a[near])
+        dst.append(b[near])
+    s, d = np.concatenate(src), np.concatenate(dst)
+    graph = coo_matrix((np.ones(len(s)), (s, d)), shape=(u, u))
+    _, label = connected_components(graph, directed=False)
+    size = np.bincount(label)
+    main = label == int(np.argmax(size))
+    if main.all():
+        return np.zeros(len(xyz), bool)
+    centre = np.column_stack([cells % cols, cells // cols]).astype(np.float64)
+    k = min(_PATCH_NEIGHBOURS, int(main.sum()))
+    _, nearest = cKDTree(centre[main]).query(centre[~main], k=k, workers=-1)
+    around = zmin[main][nearest.reshape(-1, k)]
+    top, bottom = zmin.copy(), zmin.copy()  # per cell: the main surface around it
+    top[~main], bottom[~main] = around.max(axis=1), around.min(axis=1)
+    high = np.bincount(label, weights=zmin - top > rise, minlength=len(size))
+    low = np.bincount(label, weights=zmin - bottom < -sink, minlength=len(size))
+    small = size * cell * cell <= max_area
+    raised, sunk = small & (high > 0.5 * size), small & (low > 0.5 * size)
+    # A raised patch goes whole (a crown's points spread over metres); of a sunk one only
+    # the points that far down: a cell of low blunders also holds the ground above them.
+    return raised[label][inverse] | (sunk[label][inverse]
+                                     & (xyz[:, 2] - bottom[inverse] < -sink))
+
+
 # --------------------------------------------------------------------------- ground source
 
 
@@ -177,12 +272,12 @@ def select_ground(xyz: np.ndarray, *, cfg: DemBuilderConfig, intensity: np.ndarr
         from lidar_obstacles.core.ground import classify_ground
 
         gen = np.random.default_rng(cfg.ransac.seed if rng is None else rng)
-        from lidar_obstacles.core.pipeline import bare_earth
+        from lidar_obstacles.core.pipeline import bare_earth_of
 
         res = classify_ground(xyz, tiling=cfg.tiling, ground=cfg.ground, tin=cfg.tin,
                               ransac=cfg.ransac, context_xyz=None, rng=gen)
-        return DemGround(bare_earth(np.asarray(res.ground, dtype=bool),
-                                    res.height_above_ground, cfg.dem.ground_band), "detector")
+        return DemGround(bare_earth_of(xyz, np.asarray(res.ground, dtype=bool),
+                                       res.height_above_ground, cfg.dem), "detector")
     found = kmeans_ground(xyz, cfg=cfg.kmeans, intensity=intensity, rng=rng)
     return DemGround(found.ground, "kmeans", found.reason)
 

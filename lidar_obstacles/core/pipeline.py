@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
-from lidar_obstacles.core.arrays import column_max, column_min
+from lidar_obstacles.config import DemBuilderConfig, DemConfig, ObstacleDetectorConfig
+from lidar_obstacles.core.arrays import all_columns, column_max, column_min
 from lidar_obstacles.core.classes import GROUND
 
 TOWER_MEMORY_SECONDS = 60.0  # s: how long a recognised tower is remembered
@@ -134,12 +134,38 @@ class ObstacleDetector:
             timings=timings)
 
 
-def bare_earth(ground: np.ndarray, height_above_ground: np.ndarray, band: float) -> np.ndarray:
-    """(N,) bool: the ground points (N,) bool no higher than `band` m above the ground
-    surface (height_above_ground (N,) m; NaN counts as on it); band 0 keeps them all."""
-    if band <= 0:
-        return ground
-    return ground & ~(np.nan_to_num(np.asarray(height_above_ground, float), nan=0.0) > band)
+def bare_earth(xyz: np.ndarray, height_above_ground: np.ndarray, cfg: DemConfig) -> np.ndarray:
+    """(G,) bool: which of the detector's ground points xyz (G, 3) float64 metres the DEM
+    takes as bare earth.
+
+    Two tests, both on the ground points alone (what `replay` hands over): a point more
+    than `dem.ground_band` m above the detector's surface (height_above_ground (G,) m,
+    NaN counts as on it; band 0 keeps them all) is low vegetation or a car inside the
+    filter's acceptance band; the remaining points in small patches standing apart from
+    the main ground (`dem.patch_area`, :func:`lidar_obstacles.core.dem.ground_blunders`)
+    are tree crowns, roofs or low blunders the filter took for ground.
+    """
+    from lidar_obstacles.core.dem import ground_blunders
+
+    xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
+    keep = np.ones(len(xyz), bool)
+    if cfg.ground_band > 0:
+        hag = np.nan_to_num(np.asarray(height_above_ground, float), nan=0.0)
+        keep = ~(hag > cfg.ground_band)
+    idx = np.flatnonzero(keep & all_columns(np.isfinite(xyz)))  # the DEM drops the rest
+    keep[idx[ground_blunders(xyz[idx], max_area=cfg.patch_area, rise=cfg.patch_rise,
+                             sink=cfg.patch_sink)]] = False
+    return keep
+
+
+def bare_earth_of(xyz: np.ndarray, ground: np.ndarray, height_above_ground: np.ndarray,
+                  cfg: DemConfig) -> np.ndarray:
+    """(N,) bool: :func:`bare_earth` of a whole cloud, xyz (N, 3) float64 metres, whose
+    ground is ground (N,) bool, with height_above_ground (N,) m."""
+    idx = np.flatnonzero(ground)
+    out = np.zeros(len(xyz), bool)
+    out[idx[bare_earth(xyz[idx], np.asarray(height_above_ground)[idx], cfg)]] = True
+    return out
 
 
 class DemPipeline:
@@ -181,7 +207,7 @@ class DemPipeline:
                                 context_xyz=ctx.points_near(lo, hi, stamp),
                                 rng=np.random.default_rng(self.cfg.ransac.seed))
             ctx.update(xyz[g.ground], stamp, xyz[:, :2])
-            return bare_earth(g.ground, g.height_above_ground, self.cfg.dem.ground_band)
+            return bare_earth_of(xyz, g.ground, g.height_above_ground, self.cfg.dem)
         from lidar_obstacles.core.kmeans import kmeans_ground
 
         return kmeans_ground(xyz, cfg=self.cfg.kmeans, intensity=intensity).ground
@@ -205,12 +231,12 @@ class DemPipeline:
                    height_above_ground: np.ndarray | None = None) -> dict[str, float]:
         """Add ground points (G, 3) float64 metres found elsewhere (the obstacle detector's,
         in `replay`) to the rolling DEM; with their height above the detector's surface
-        (G,) m, only the bare earth (`dem.ground_band`). Returns timings in seconds."""
+        (G,) m, only the bare earth (:func:`bare_earth`). Returns timings in seconds."""
         t0 = time.perf_counter()
+        ground_xyz = np.asarray(ground_xyz, np.float64).reshape(-1, 3)
         if height_above_ground is not None:
-            ground_xyz = ground_xyz[bare_earth(np.ones(len(ground_xyz), bool),
-                                               height_above_ground, self.cfg.dem.ground_band)]
+            ground_xyz = ground_xyz[bare_earth(ground_xyz, height_above_ground, self.cfg.dem)]
         vehicle_xy = None if vehicle_xyz is None else np.asarray(vehicle_xyz, float)[:2]
-        self.dem.update(np.asarray(ground_xyz, np.float64).reshape(-1, 3), vehicle_xy, stamp)
+        self.dem.update(ground_xyz, vehicle_xy, stamp)
         t1 = time.perf_counter()
         return {"ground": 0.0, "update": t1 - t0, "total": t1 - t0}
