@@ -290,6 +290,16 @@ def _empty_below(xyz: np.ndarray, cand: np.ndarray, others: np.ndarray) -> np.nd
     ok = np.ones(len(cand), bool)
     if len(others) == 0 or len(cand) == 0:
         return ok
+    # Only points inside the candidates' box (1 m around, WIRE_GAP below) can block: the
+    # tree is built on those (on a forest strip most of the crowns lie elsewhere).
+    c, o = xyz[cand], xyz[others]
+    lo, hi = column_min(c), column_max(c)
+    near = ((o[:, 0] >= lo[0] - 1.0) & (o[:, 0] <= hi[0] + 1.0)
+            & (o[:, 1] >= lo[1] - 1.0) & (o[:, 1] <= hi[1] + 1.0)
+            & (o[:, 2] > lo[2] - WIRE_GAP) & (o[:, 2] < hi[2] - 0.5))
+    others = others[near]
+    if len(others) == 0:
+        return ok
     tree = cKDTree(xyz[others, :2])
     lists = tree.query_ball_point(xyz[cand, :2], r=1.0, workers=_workers(len(cand)))
     lens = np.fromiter((len(x) for x in lists), np.int64, len(lists))
