@@ -96,6 +96,14 @@ class ObstacleClasses:
     towers: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
+def search_tree(points: np.ndarray) -> cKDTree:
+    """A k-d tree of (M, D) points for exact neighbour queries, built the fast way: split at
+    the middle of the box, not the median, and without shrinking the boxes (on a forest
+    strip's 44 000 points 4.3 ms instead of 9.3 ms, queries no slower; the answers of an
+    exact query do not depend on how the tree was split)."""
+    return cKDTree(points, balanced_tree=False, compact_nodes=False)
+
+
 def _workers(n_queries: int, k: int = 1) -> int:
     """Threads for a cKDTree query of k neighbours each: all cores only when the query is
     large enough to pay for starting them (~1 ms per call on a 2-core machine, more than
@@ -200,7 +208,7 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
     if v < 3:
         return LocalShape(z, z, up, up, z, np.ones(m))
     k = min(max_neighbours, v)
-    dist, nn = cKDTree(centre).query(at, k=k, distance_upper_bound=radius,
+    dist, nn = search_tree(centre).query(at, k=k, distance_upper_bound=radius,
                                      workers=_workers(q, k))
     inside = np.isfinite(dist)
     n_near = inside.sum(axis=1).astype(np.float64)
@@ -240,7 +248,7 @@ def _isolated(pts: np.ndarray, radius: float, min_neighbours: int) -> np.ndarray
                                 return_inverse=True, return_counts=True)
     ask = np.flatnonzero(count[voxel.ravel()] <= min_neighbours)
     if len(ask):
-        dist, _ = cKDTree(pts).query(pts[ask], k=min_neighbours + 1,
+        dist, _ = search_tree(pts).query(pts[ask], k=min_neighbours + 1,
                                      distance_upper_bound=radius, workers=_workers(len(ask)))
         isolated[ask] = ~np.isfinite(dist.reshape(len(ask), -1)[:, -1])
     return isolated
@@ -300,7 +308,7 @@ def _empty_below(xyz: np.ndarray, cand: np.ndarray, others: np.ndarray) -> np.nd
     others = others[near]
     if len(others) == 0:
         return ok
-    tree = cKDTree(xyz[others, :2])
+    tree = search_tree(xyz[others, :2])
     lists = tree.query_ball_point(xyz[cand, :2], r=1.0, workers=_workers(len(cand)))
     lens = np.fromiter((len(x) for x in lists), np.int64, len(lists))
     if lens.sum() == 0:
@@ -370,7 +378,7 @@ def _follow_wires(pts: np.ndarray, allowed: np.ndarray, axis: np.ndarray,
         free = np.flatnonzero(allowed & ~is_wire)
         if len(free) == 0 or len(front) == 0:
             return
-        near = cKDTree(pts[front]).query_ball_point(pts[free], r=WIRE_STEP,
+        near = search_tree(pts[front]).query_ball_point(pts[free], r=WIRE_STEP,
                                                     workers=_workers(len(free)))
         lens = np.fromiter((len(x) for x in near), np.int64, len(near))
         if lens.sum() == 0:
@@ -447,7 +455,7 @@ def _buildings(xyz: np.ndarray, cand: np.ndarray, shape: LocalShape, allowed: np
             is_building[members] = True
     others = np.flatnonzero(allowed & ~is_building)
     if is_building.any() and len(others):
-        dist, _ = cKDTree(xyz[cand[is_building]]).query(
+        dist, _ = search_tree(xyz[cand[is_building]]).query(
             xyz[cand[others]], distance_upper_bound=BUILDING_REACH, workers=_workers(len(others)))
         is_building[others[np.isfinite(dist)]] = True
     return is_building
@@ -617,7 +625,7 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
         if feet:
             # the ground points right under a tower's legs, not its whole footprint
             ground_ids = np.flatnonzero(classes == GROUND)
-            dist, _ = cKDTree(np.concatenate(feet)).query(
+            dist, _ = search_tree(np.concatenate(feet)).query(
                 xyz[ground_ids], distance_upper_bound=TOWER_FOOT_REACH,
                 workers=_workers(len(ground_ids)))
             classes[ground_ids[np.isfinite(dist)]] = TOWER
