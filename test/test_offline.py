@@ -116,22 +116,41 @@ def _contents(items) -> list[tuple[str, int, bytes]]:
     return out
 
 
-def test_replay_writes_on_a_thread_exactly_what_a_sequential_run_makes(sim_bag, tmp_path):
-    """The DEM work and the writing run beside the detector, and change nothing: same
-    messages, same order, as doing everything one cloud after the other."""
+def test_replay_in_two_processes_writes_exactly_what_a_sequential_run_makes(sim_bag, tmp_path):
+    """The DEM work runs in a second process and the writing on a thread, and change
+    nothing: same messages, same order, as doing everything one cloud after the other."""
     from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
-    from lidar_obstacles.ros.offline import ReplayStats, drain, replay, run_stages
+    from lidar_obstacles.ros.offline import DemSchedule, ReplayStats, drain, replay, run_stages
     from lidar_obstacles.ros.stages import DemStage, DetectorStage
 
-    replay(sim_bag, tmp_path / "threaded")
-    with BagReader(tmp_path / "threaded") as reader:
+    replay(sim_bag, tmp_path / "parallel")
+    with BagReader(tmp_path / "parallel") as reader:
         written = [(r.topic, r.stamp_ns, r.raw) for r in reader.records()]
     with BagReader(sim_bag) as reader:
+        dem = DemStage(DemBuilderConfig())
+        schedule = DemSchedule(dem)
         sequential = [done for item in run_stages(
             reader, topic=None, detector=DetectorStage(ObstacleDetectorConfig()),
-            dem=DemStage(DemBuilderConfig()), stats=ReplayStats()) for done in drain(item)]
+            dem=dem, stats=ReplayStats()) for done in drain(item, schedule)]
     assert any(t == "/dem" for t, _, _ in sequential)
     assert _contents(written) == _contents(sequential)
+
+
+def test_the_dem_process_hands_its_errors_back():
+    """An exception in the DEM worker process is raised where its result is awaited (the
+    writer thread, which hands it to replay: see the failing-write test)."""
+    from lidar_obstacles.config import DemBuilderConfig
+    from lidar_obstacles.ros.offline import DemWork, _DemProcess
+
+    worker = _DemProcess(DemBuilderConfig())
+    try:
+        ok = worker.submit(DemWork(0, 0, "map", None, np.zeros((3, 3)), np.zeros(3)))
+        assert ok.result(timeout=120) == []  # the first cloud: no DEM due yet
+        bad = worker.submit(DemWork(1, 1, "map", None, np.zeros((5, 2)), np.zeros(5)))
+        with pytest.raises(ValueError, match="reshape"):
+            bad.result(timeout=120)
+    finally:
+        worker.close()
 
 
 def test_a_failing_write_stops_replay_with_its_error(sim_bag, tmp_path, monkeypatch):

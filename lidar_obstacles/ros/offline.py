@@ -6,7 +6,6 @@ runs the very stage objects the nodes run.
 """
 from __future__ import annotations
 
-import functools
 import importlib
 import json
 import sys
@@ -195,6 +194,60 @@ def _odom_topics(reader: BagReader) -> list[str]:
     return [t.topic for t in reader.topics() if t.msgtype == ODOMETRY]
 
 
+@dataclass(frozen=True)
+class DemWork:
+    """One cloud's ground, handed from the detector to the DEM in `replay`: plain data, so
+    that the DEM can run in another process. ground_xyz (G, 3) float64 m in `frame_id`,
+    ground_hag (G,) m above the detector's surface, vehicle_xyz (3,) m or None. Without
+    ground (None): no cloud, the DEM as it stands is due (the end of the bag)."""
+
+    stamp_ns: int
+    record_ns: int
+    frame_id: str = ""
+    vehicle_xyz: np.ndarray | None = None
+    ground_xyz: np.ndarray | None = None
+    ground_hag: np.ndarray | None = None
+
+
+class DemSchedule:
+    """The DEM side of `replay`: every cloud goes into the rolling DEM, and its messages
+    are due at `dem.publish_rate` on the bag's clock, as the node's timer would publish
+    them. Items are (topic, record stamp ns, message)."""
+
+    def __init__(self, stage: DemStage) -> None:
+        self.stage = stage
+        self.period_ns = int(1e9 / stage.cfg.dem.publish_rate)
+        self.next_ns: int | None = None
+
+    def _due(self, stamp_ns: int, record_ns: int) -> list[tuple[str, int, Any]]:
+        if self.next_ns is None:
+            self.next_ns = stamp_ns + self.period_ns
+        elif stamp_ns >= self.next_ns:
+            self.next_ns = stamp_ns + self.period_ns
+            return self.outputs(stamp_ns, record_ns)
+        return []
+
+    def outputs(self, stamp_ns: int, record_ns: int) -> list[tuple[str, int, Any]]:
+        """The DEM messages now (none before any ground)."""
+        return [("/" + name, record_ns, out) for name, out in self.stage.dem_outputs(stamp_ns)]
+
+    def add_cloud(self, msg, pose: Pose | None, stamp_ns: int, record_ns: int) -> list:
+        """A cloud whose ground the DEM finds itself (`dem.ground_source`)."""
+        self.stage.process(msg, pose)
+        return self._due(stamp_ns, record_ns)
+
+    def __call__(self, work: DemWork) -> list[tuple[str, int, bytes]]:
+        """A cloud's ground from the detector; the items serialized (they may cross
+        processes, and rclpy messages do not pickle)."""
+        if work.ground_xyz is None:
+            items = self.outputs(work.stamp_ns, work.record_ns)
+        else:
+            self.stage.add_ground(work.ground_xyz, work.ground_hag, stamp_ns=work.stamp_ns,
+                                  frame_id=work.frame_id, vehicle_xyz=work.vehicle_xyz)
+            items = self._due(work.stamp_ns, work.record_ns)
+        return [(topic, stamp, _serialize(msg)) for topic, stamp, msg in items]
+
+
 def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage | None,
                dem: DemStage | None, stats: ReplayStats, desc: str = "replay",
                passthrough: bool = False) -> Iterator[tuple[str, int, Any]]:
@@ -202,9 +255,10 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
 
     Yields (topic, stamp_ns, message-or-raw-bytes) to write. Malformed clouds are counted
     and skipped, like the node drops them. When the DEM takes the detector's ground, its
-    work is yielded as (DEFERRED, stamp_ns, work): a callable returning the items to write,
-    to be called in order (see `drain`), so that a consumer may run it on another thread
-    while the next cloud is being classified.
+    work is not done here but yielded as (DEFERRED, stamp_ns, DemWork), in order, for a
+    `DemSchedule` of `dem`'s configuration to do (see `drain`): `replay` runs it in a
+    second process while the next cloud is being classified. Otherwise the DEM work is
+    done here, by a DemSchedule of `dem`.
     """
     cloud_topic = reader.pointcloud_topic(topic)
     odom = _odom_topics(reader)
@@ -219,22 +273,8 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
     share_ground = (detector is not None and dem is not None
                     and dem.shares_ground_with(detector.cfg))
     max_age = (detector or dem).cfg.odometry_max_age  # type: ignore[union-attr]
-    publish_period_ns = int(1e9 / dem.cfg.dem.publish_rate) if dem is not None else 0
-    next_dem_ns: int | None = None
-
-    def dem_step(msg, pose, shared: dict, stamp_ns: int, record_ns: int) -> list:
-        """Add a cloud to the DEM; its messages when one is due (at `dem.publish_rate`)."""
-        nonlocal next_dem_ns
-        dem.process(msg, pose, **shared)  # type: ignore[union-attr]
-        if next_dem_ns is None:
-            next_dem_ns = stamp_ns + publish_period_ns
-        elif stamp_ns >= next_dem_ns:
-            next_dem_ns = stamp_ns + publish_period_ns
-            return [("/" + name, record_ns, out)
-                    for name, out in dem.dem_outputs(stamp_ns)]  # type: ignore[union-attr]
-        return []
-
-    first_ns = last_ns = None
+    schedule = DemSchedule(dem) if dem is not None and not share_ground else None
+    first_ns = last_ns = last_record_ns = None
     n_clouds = reader.count([cloud_topic])
     bar = _progress(None, n_clouds, desc)
     t_start = time.perf_counter()
@@ -251,7 +291,7 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
             msg = reader.deserialize(record)
             stamp_ns = messages.stamp_ns_of(msg.header)
             first_ns = stamp_ns if first_ns is None else first_ns
-            last_ns = stamp_ns
+            last_ns, last_record_ns = stamp_ns, record.stamp_ns
             pose = poses.nearest(stamp_ns, max_age)
             if use_odom and pose is None:
                 stats.rejected += 1
@@ -260,17 +300,18 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                 continue
             t0 = time.perf_counter()
             try:
-                shared: dict = {}
+                work = None
                 if detector is not None:
                     outputs, det_stats = detector.process(msg, pose)
                     for name, out in outputs:
                         yield "/" + name, record.stamp_ns, out
                     if share_ground:
-                        shared = {"ground_xyz": det_stats["ground_xyz"],
-                                  "ground_hag": det_stats["ground_hag"]}
-                dem_items: list = []
-                if dem is not None and not share_ground:
-                    dem_items = dem_step(msg, pose, shared, stamp_ns, record.stamp_ns)
+                        work = DemWork(det_stats["stamp_ns"], record.stamp_ns,
+                                       det_stats["frame_id"],
+                                       pose.position if pose is not None else None,
+                                       det_stats["ground_xyz"], det_stats["ground_hag"])
+                dem_items = (schedule.add_cloud(msg, pose, stamp_ns, record.stamp_ns)
+                             if schedule is not None else [])
             except CloudFormatError as exc:
                 stats.rejected += 1
                 key = str(exc).split(":")[0][:80]
@@ -281,15 +322,14 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
             if stats.messages % 100 == 0:
                 release_free_memory()  # as the nodes do every 10 s
             stats.points += int(msg.width) * int(msg.height)
-            if dem is not None and share_ground:
+            if work is not None:
                 # the detector's ground is all the DEM needs: no parsing, nothing to reject
-                yield DEFERRED, record.stamp_ns, functools.partial(
-                    dem_step, msg, pose, shared, stamp_ns, record.stamp_ns)
+                yield DEFERRED, record.stamp_ns, work
             yield from dem_items
-        if dem is not None and last_ns is not None:
-            yield DEFERRED, last_ns, functools.partial(
-                lambda end: [("/" + name, end, out) for name, out in dem.dem_outputs(end)],
-                last_ns)
+        if last_ns is not None and share_ground:
+            yield DEFERRED, last_ns, DemWork(last_ns, last_ns)
+        elif last_ns is not None and schedule is not None:
+            yield from schedule.outputs(last_ns, last_ns)
     finally:
         bar.close()
         stats.wall_seconds = time.perf_counter() - t_start
@@ -299,16 +339,75 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
             stats.bag_seconds = (last_ns - first_ns + period) * 1e-9
 
 
-def drain(item: tuple[str, int, Any]) -> list[tuple[str, int, Any]]:
-    """The items to write for one item of `run_stages`: deferred work is done now."""
+def drain(item: tuple[str, int, Any], schedule: DemSchedule | None = None
+          ) -> list[tuple[str, int, Any]]:
+    """The items to write for one item of `run_stages`: deferred DEM work is done now by
+    `schedule`, or, when it was handed to a worker process, its result awaited."""
     name, stamp_ns, payload = item
-    return payload() if name == DEFERRED else [item]
+    if name != DEFERRED:
+        return [item]
+    if isinstance(payload, DemWork):
+        if schedule is None:
+            raise ValueError("deferred DEM work needs a DemSchedule to do it")
+        return schedule(payload)
+    return payload.result()  # a Future of the DEM worker process
+
+
+# The DEM worker process's schedule (`replay`): one process, one DEM, work in order.
+_WORKER_SCHEDULE: DemSchedule | None = None
+_WORKER_DONE = 0
+
+
+def _start_dem_worker(cfg: DemBuilderConfig) -> None:
+    import signal
+
+    from lidar_obstacles.core.arrays import single_threaded_blas
+
+    global _WORKER_SCHEDULE
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    single_threaded_blas()
+    _WORKER_SCHEDULE = DemSchedule(DemStage(cfg))
+
+
+def _dem_work_in_worker(work: DemWork) -> list[tuple[str, int, bytes]]:
+    global _WORKER_DONE
+    assert _WORKER_SCHEDULE is not None, "the DEM worker was not started"
+    _WORKER_DONE += 1
+    if _WORKER_DONE % 100 == 0:
+        release_free_memory()  # as the nodes do every 10 s
+    return _WORKER_SCHEDULE(work)
+
+
+class _DemProcess:
+    """The DEM of `replay` in a second process: the detector keeps one core, the DEM takes
+    the other (threads would share one interpreter lock). One worker, so its work is done
+    in the order it was given; the results are futures, awaited by the writer in order.
+
+    Forked, not spawned: a spawned child re-imports the caller's main module, which runs an
+    unguarded script a second time. Started before the writer thread and the progress bar,
+    so that the fork copies a process with no other threads."""
+
+    def __init__(self, cfg: DemBuilderConfig) -> None:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        self._pool = ProcessPoolExecutor(
+            max_workers=1, mp_context=multiprocessing.get_context("fork"),
+            initializer=_start_dem_worker, initargs=(cfg,))
+        self._pool.submit(int).result()  # the fork happens now
+
+    def submit(self, work: DemWork):
+        """A Future of the (topic, stamp ns, CDR bytes) items of `work`."""
+        return self._pool.submit(_dem_work_in_worker, work)
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
 
 
 class _BackgroundWriter:
-    """Does the deferred DEM work, serializes and writes on one thread, in order, while the
-    caller classifies the next cloud (the second core works while the first classifies). The queue
-    is short, so memory stays bounded; an error on the thread is raised in the caller."""
+    """Serializes and writes on one thread, in order, awaiting the DEM worker's results
+    where they come, while the caller classifies the next cloud. The queue is short, so
+    memory stays bounded; an error on the thread is raised in the caller."""
 
     def __init__(self, bag: BagWriter, depth: int = 4) -> None:
         import queue
@@ -358,13 +457,23 @@ def replay(src: Path, out: Path, *, topic: str | None = None, params_file: Path 
         for t in reader.topics():
             if t.msgtype != POINTCLOUD2 and t.topic not in OUTPUT_TYPES:
                 bag.add_topic(t.topic, t.msgtype, transient_local=t.topic == CRS_TOPIC)
-        writer = _BackgroundWriter(bag)
+        # (when the DEM finds its own ground, run_stages does its work: no second process)
+        dem_process = (_DemProcess(dem_cfg) if dem is not None
+                       and dem.shares_ground_with(det_cfg) else None)
         try:
-            for item in run_stages(reader, topic=topic, detector=detector, dem=dem,
-                                   stats=stats, passthrough=True):
-                writer.put(item)
+            writer = _BackgroundWriter(bag)
+            try:
+                for name, stamp_ns, payload in run_stages(
+                        reader, topic=topic, detector=detector, dem=dem, stats=stats,
+                        passthrough=True):
+                    if name == DEFERRED and dem_process is not None:
+                        payload = dem_process.submit(payload)
+                    writer.put((name, stamp_ns, payload))
+            finally:
+                writer.close()
         finally:
-            writer.close()
+            if dem_process is not None:
+                dem_process.close()
         stats.wall_seconds = time.perf_counter() - t_start  # the writing included
         if stats.messages == 0:
             raise BagError(f"no cloud of {src} could be processed "

@@ -123,7 +123,8 @@ class DetectorStage:
         stats = {"points_in": n, "ground": int(ground.sum()), "obstacles": int((~ground).sum()),
                  "objects": len(result.objects), "timings": dict(result.timings),
                  "seconds": time.perf_counter() - t0, "classes": classes,
-                 "ground_xyz": prep.xyz[ground], "ground_hag": hag[ground]}
+                 "ground_xyz": prep.xyz[ground], "ground_hag": hag[ground],
+                 "frame_id": prep.frame_id, "stamp_ns": prep.stamp_ns}
         return out, stats
 
 
@@ -150,31 +151,32 @@ class DemStage:
                 and (c.tiling, c.ground, c.tin, c.ransac, c.context)
                 == (d.tiling, d.ground, d.tin, d.ransac, d.context))
 
-    def process(self, msg, pose: Pose | None = None, ground_xyz: np.ndarray | None = None,
-                ground_hag: np.ndarray | None = None) -> dict:
-        """Add one message's ground to the DEM. ground_xyz: (G, 3) float64 metres and
-        ground_hag (G,) m, the message's ground and its height above the ground surface,
-        already found by a DetectorStage that `shares_ground_with` this stage."""
+    def process(self, msg, pose: Pose | None = None) -> dict:
+        """Find one message's ground (`dem.ground_source`) and add it to the DEM."""
         cfg = self.cfg
         t0 = time.perf_counter()
-        vehicle = pose.position if pose is not None else None
-        if ground_xyz is not None:
-            self.frame_id = pose.frame_id if (pose is not None and cfg.use_odometry) \
-                else msg.header.frame_id
-            self.last_stamp_ns = messages.stamp_ns_of(msg.header)
-            timings = self.pipeline.add_ground(ground_xyz, stamp=self.last_stamp_ns * 1e-9,
-                                               vehicle_xyz=vehicle,
-                                               height_above_ground=ground_hag)
-            return {"points_in": int(msg.width) * int(msg.height), "timings": timings,
-                    "seconds": time.perf_counter() - t0}
         prep = prepare(msg, keep_non_finite=False, max_points=cfg.input.max_points,
                        pose=pose, transform=cfg.use_odometry)
         self.frame_id = prep.frame_id
         self.last_stamp_ns = prep.stamp_ns
         timings = self.pipeline.process(prep.xyz, stamp=prep.stamp_ns * 1e-9,
-                                        vehicle_xyz=vehicle,
+                                        vehicle_xyz=pose.position if pose is not None else None,
                                         intensity=_attr(prep.points, "intensity"))
         return {"points_in": len(prep.points), "timings": timings,
+                "seconds": time.perf_counter() - t0}
+
+    def add_ground(self, ground_xyz: np.ndarray, ground_hag: np.ndarray, *, stamp_ns: int,
+                   frame_id: str, vehicle_xyz: np.ndarray | None = None) -> dict:
+        """Add one message's ground, already found by a DetectorStage that
+        `shares_ground_with` this stage: ground_xyz (G, 3) float64 m in `frame_id` (the
+        detector's output frame), ground_hag (G,) m above the detector's ground surface."""
+        t0 = time.perf_counter()
+        self.frame_id = frame_id
+        self.last_stamp_ns = stamp_ns
+        timings = self.pipeline.add_ground(ground_xyz, stamp=stamp_ns * 1e-9,
+                                           vehicle_xyz=vehicle_xyz,
+                                           height_above_ground=ground_hag)
+        return {"points_in": len(ground_xyz), "timings": timings,
                 "seconds": time.perf_counter() - t0}
 
     def grid(self):
