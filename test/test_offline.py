@@ -116,9 +116,10 @@ def _contents(items) -> list[tuple[str, int, bytes]]:
     return out
 
 
-def test_replay_in_two_processes_writes_exactly_what_a_sequential_run_makes(sim_bag, tmp_path):
-    """The DEM work runs in a second process and the writing on a thread, and change
-    nothing: same messages, same order, as doing everything one cloud after the other."""
+def test_replay_in_three_processes_writes_exactly_what_a_sequential_run_makes(sim_bag, tmp_path):
+    """The detector's second half and the DEM run in processes of their own, the writing
+    on a thread, and change nothing: same messages, same order, as doing everything one
+    cloud after the other in one process."""
     from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
     from lidar_obstacles.ros.offline import DemSchedule, ReplayStats, drain, replay, run_stages
     from lidar_obstacles.ros.stages import DemStage, DetectorStage
@@ -127,30 +128,30 @@ def test_replay_in_two_processes_writes_exactly_what_a_sequential_run_makes(sim_
     with BagReader(tmp_path / "parallel") as reader:
         written = [(r.topic, r.stamp_ns, r.raw) for r in reader.records()]
     with BagReader(sim_bag) as reader:
-        dem = DemStage(DemBuilderConfig())
+        detector, dem = DetectorStage(ObstacleDetectorConfig()), DemStage(DemBuilderConfig())
         schedule = DemSchedule(dem)
         sequential = [done for item in run_stages(
-            reader, topic=None, detector=DetectorStage(ObstacleDetectorConfig()),
-            dem=dem, stats=ReplayStats()) for done in drain(item, schedule)]
+            reader, topic=None, detector=detector, dem=dem, stats=ReplayStats())
+            for done in drain(item, detector=detector, schedule=schedule)]
     assert any(t == "/dem" for t, _, _ in sequential)
     assert _contents(written) == _contents(sequential)
 
 
-def test_the_dem_process_hands_its_errors_back():
-    """An exception in the DEM worker process is raised where its result is awaited (the
+def test_a_worker_process_hands_its_errors_back():
+    """An exception in a worker process is raised where its result is awaited (the
     writer thread, which hands it to replay: see the failing-write test)."""
-    from lidar_obstacles.config import DemBuilderConfig
-    from lidar_obstacles.ros.offline import DemWork, _DemProcess
+    from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
+    from lidar_obstacles.ros.offline import DemWork, _WorkerProcesses
 
-    worker = _DemProcess(DemBuilderConfig())
+    workers = _WorkerProcesses(ObstacleDetectorConfig(), DemBuilderConfig())
     try:
-        ok = worker.submit(DemWork(0, 0, "map", None, np.zeros((3, 3)), np.zeros(3)))
-        assert ok.result(timeout=120) == []  # the first cloud: no DEM due yet
-        bad = worker.submit(DemWork(1, 1, "map", None, np.zeros((5, 2)), np.zeros(5)))
+        ok = workers.submit(DemWork(0, 0, "map", None, np.zeros((3, 3)), np.zeros(3)))
+        assert ok.result(timeout=120) == ([], None)  # the first cloud: no DEM due yet
+        bad = workers.submit(DemWork(1, 1, "map", None, np.zeros((5, 2)), np.zeros(5)))
         with pytest.raises(ValueError, match="reshape"):
             bad.result(timeout=120)
     finally:
-        worker.close()
+        workers.close()
 
 
 def test_a_failing_write_stops_replay_with_its_error(sim_bag, tmp_path, monkeypatch):

@@ -35,6 +35,20 @@ class ClearanceGrid:
 
 
 @dataclass(frozen=True)
+class GroundStep:
+    """A cloud of N points after `ObstacleDetector.ground_step`: xyz (N, 3) float64 m,
+    ground (N,) bool, height_above_ground (N,) float32 m (NaN where no surface), stamp s,
+    vehicle_xyz (3,) m or None, timings s. Plain data: it may cross processes."""
+
+    xyz: np.ndarray
+    ground: np.ndarray
+    height_above_ground: np.ndarray
+    stamp: float
+    vehicle_xyz: np.ndarray | None
+    timings: dict[str, float]
+
+
+@dataclass(frozen=True)
 class ObstacleResult:
     """What the obstacle detector found in one cloud of N points.
 
@@ -60,7 +74,10 @@ class ObstacleDetector:
 
         self.cfg = cfg or ObstacleDetectorConfig()
         self.context = GroundContext(self.cfg.context)
-        self._rng = np.random.default_rng(self.cfg.ransac.seed)
+        # One random stream per half (ground: the `ransac` and `tin` methods; obstacles: the
+        # roofs' RANSAC), so that the halves may run in different processes.
+        self._ground_rng = np.random.default_rng(self.cfg.ransac.seed)
+        self._obstacle_rng = np.random.default_rng(self.cfg.ransac.seed)
         self._towers = np.zeros((0, 4))  # x, y, radius (m), stamp (s) of towers seen
 
     def _known_towers(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -86,49 +103,72 @@ class ObstacleDetector:
         if cfg.context != self.cfg.context:
             self.context = GroundContext(cfg.context)
         if cfg.ransac.seed != self.cfg.ransac.seed:
-            self._rng = np.random.default_rng(cfg.ransac.seed)
+            self._ground_rng = np.random.default_rng(cfg.ransac.seed)
+            self._obstacle_rng = np.random.default_rng(cfg.ransac.seed)
         self.cfg = cfg
 
     def process(self, xyz: np.ndarray, *, stamp: float = 0.0,
                 vehicle_xyz: np.ndarray | None = None) -> ObstacleResult:
-        """Classify one cloud.
+        """Classify one cloud: `ground_step`, then `obstacle_step`.
 
         xyz: (N, 3) float64 metres, z up. stamp: seconds (for the ground context's age).
         vehicle_xyz: (3,) the UAV position for the clearance grid (None: the cloud's centre).
         """
+        return self.obstacle_step(self.ground_step(xyz, stamp=stamp, vehicle_xyz=vehicle_xyz))
+
+    def ground_step(self, xyz: np.ndarray, *, stamp: float = 0.0,
+                    vehicle_xyz: np.ndarray | None = None) -> GroundStep:
+        """The first half of `process`: ground and height above ground, with the ground
+        context of earlier clouds, which this cloud's ground then joins. Its only state is
+        the context, so `replay` can run the second half in another process, one cloud
+        behind."""
         from lidar_obstacles.core.ground import classify_ground
-        from lidar_obstacles.core.obstacles import classify_obstacles, clearance_grid
 
         cfg = self.cfg
         t0 = time.perf_counter()
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-        n = len(xyz)
-        if n == 0:
-            empty = np.zeros(0, bool)
-            return ObstacleResult(empty, np.zeros(0, np.uint8), np.zeros(0, np.float32),
-                                  np.zeros(0, np.int32), (), None, {"total": 0.0})
+        if len(xyz) == 0:
+            return GroundStep(xyz, np.zeros(0, bool), np.zeros(0, np.float32), stamp,
+                              vehicle_xyz, {"total": 0.0})
         lo, hi = column_min(xyz[:, :2]), column_max(xyz[:, :2])
         context_xyz = self.context.points_near(lo, hi, stamp)
         t1 = time.perf_counter()
         g = classify_ground(xyz, tiling=cfg.tiling, ground=cfg.ground, tin=cfg.tin,
-                            ransac=cfg.ransac, context_xyz=context_xyz, rng=self._rng)
+                            ransac=cfg.ransac, context_xyz=context_xyz, rng=self._ground_rng)
         t2 = time.perf_counter()
         self.context.update(xyz[g.ground], stamp, xyz[:, :2])
         t3 = time.perf_counter()
-        ob = classify_obstacles(xyz, g.ground, g.height_above_ground, cfg=cfg.obstacles,
-                                rng=self._rng,
+        return GroundStep(xyz, g.ground, g.height_above_ground, stamp, vehicle_xyz,
+                          {"context": t1 - t0, "ground": t2 - t1, "context_update": t3 - t2})
+
+    def obstacle_step(self, step: GroundStep) -> ObstacleResult:
+        """The second half of `process`: obstacle classes, objects and the clearance grid
+        of a cloud whose ground `ground_step` found. Its only state is the towers seen in
+        earlier clouds."""
+        from lidar_obstacles.core.obstacles import classify_obstacles, clearance_grid
+
+        cfg, xyz = self.cfg, step.xyz
+        t3 = time.perf_counter()
+        if len(xyz) == 0:
+            empty = np.zeros(0, bool)
+            return ObstacleResult(empty, np.zeros(0, np.uint8), np.zeros(0, np.float32),
+                                  np.zeros(0, np.int32), (), None, {"total": 0.0})
+        lo, hi = column_min(xyz[:, :2]), column_max(xyz[:, :2])
+        ob = classify_obstacles(xyz, step.ground, step.height_above_ground, cfg=cfg.obstacles,
+                                rng=self._obstacle_rng,
                                 known_towers=self._known_towers(lo, hi))
-        self._remember_towers(ob.towers, stamp)
+        self._remember_towers(ob.towers, step.stamp)
         t4 = time.perf_counter()
-        centre = (np.asarray(vehicle_xyz, float)[:2] if vehicle_xyz is not None
+        centre = (np.asarray(step.vehicle_xyz, float)[:2] if step.vehicle_xyz is not None
                   else (lo + hi) / 2.0)
-        cells, origin, res = clearance_grid(xyz, ob.classes, g.height_above_ground,
+        cells, origin, res = clearance_grid(xyz, ob.classes, step.height_above_ground,
                                             center_xy=centre, cfg=cfg.clearance)
         t5 = time.perf_counter()
-        timings = {"context": t1 - t0, "ground": t2 - t1, "context_update": t3 - t2,
-                   "obstacles": t4 - t3, "clearance": t5 - t4, "total": t5 - t0}
+        timings = {**step.timings, "obstacles": t4 - t3, "clearance": t5 - t4}
+        timings["total"] = sum(timings.values())
         return ObstacleResult(
-            ground=ob.classes == GROUND, classes=ob.classes, height_above_ground=g.height_above_ground,
+            ground=ob.classes == GROUND, classes=ob.classes,
+            height_above_ground=step.height_above_ground,
             object_id=ob.object_id, objects=ob.objects,
             clearance=ClearanceGrid(cells, np.asarray(origin, float), float(res)),
             timings=timings)

@@ -21,7 +21,8 @@ from lidar_obstacles.core.arrays import release_free_memory
 from lidar_obstacles.errors import BagError, CloudFormatError, LasError
 from lidar_obstacles.io.bags import CRS_TOPIC, ODOMETRY, POINTCLOUD2, BagReader, BagWriter, read_crs
 from lidar_obstacles.ros import messages
-from lidar_obstacles.ros.stages import DemStage, DetectorStage, Pose, pose_of_odometry
+from lidar_obstacles.ros.stages import (DemStage, DetectorStage, DetectorWork, Pose,
+                                        pose_of_odometry)
 
 STRING = "std_msgs/msg/String"
 
@@ -195,6 +196,15 @@ def _odom_topics(reader: BagReader) -> list[str]:
 
 
 @dataclass(frozen=True)
+class ObstacleWork:
+    """The second half of the detector's work on one cloud (`DetectorStage.finish`),
+    deferred by `run_stages`: plain data, so that it can run in another process."""
+
+    record_ns: int
+    work: DetectorWork
+
+
+@dataclass(frozen=True)
 class DemWork:
     """One cloud's ground, handed from the detector to the DEM in `replay`: plain data, so
     that the DEM can run in another process. ground_xyz (G, 3) float64 m in `frame_id`,
@@ -207,6 +217,19 @@ class DemWork:
     vehicle_xyz: np.ndarray | None = None
     ground_xyz: np.ndarray | None = None
     ground_hag: np.ndarray | None = None
+
+
+# Deferred work is done into (items to write, seconds of detector work or None); the items
+# are (topic, record stamp ns, CDR bytes): serialized where they were made, because they
+# may cross processes and rclpy messages do not pickle.
+Done = tuple[list[tuple[str, int, bytes]], "float | None"]
+
+
+def finish_obstacles(stage: DetectorStage, job: ObstacleWork) -> Done:
+    """The detector's messages of one cloud, and its seconds in the detector (both halves)."""
+    outputs, det_stats = stage.finish(job.work)
+    return ([("/" + name, job.record_ns, _serialize(out)) for name, out in outputs],
+            det_stats["seconds"])
 
 
 class DemSchedule:
@@ -236,16 +259,15 @@ class DemSchedule:
         self.stage.process(msg, pose)
         return self._due(stamp_ns, record_ns)
 
-    def __call__(self, work: DemWork) -> list[tuple[str, int, bytes]]:
-        """A cloud's ground from the detector; the items serialized (they may cross
-        processes, and rclpy messages do not pickle)."""
+    def __call__(self, work: DemWork) -> Done:
+        """A cloud's ground from the detector (or, without ground, the end of the bag)."""
         if work.ground_xyz is None:
             items = self.outputs(work.stamp_ns, work.record_ns)
         else:
             self.stage.add_ground(work.ground_xyz, work.ground_hag, stamp_ns=work.stamp_ns,
                                   frame_id=work.frame_id, vehicle_xyz=work.vehicle_xyz)
             items = self._due(work.stamp_ns, work.record_ns)
-        return [(topic, stamp, _serialize(msg)) for topic, stamp, msg in items]
+        return [(topic, stamp, _serialize(msg)) for topic, stamp, msg in items], None
 
 
 def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage | None,
@@ -253,12 +275,14 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                passthrough: bool = False) -> Iterator[tuple[str, int, Any]]:
     """Feed every cloud of a bag through the stages, in bag order.
 
-    Yields (topic, stamp_ns, message-or-raw-bytes) to write. Malformed clouds are counted
-    and skipped, like the node drops them. When the DEM takes the detector's ground, its
-    work is not done here but yielded as (DEFERRED, stamp_ns, DemWork), in order, for a
-    `DemSchedule` of `dem`'s configuration to do (see `drain`): `replay` runs it in a
-    second process while the next cloud is being classified. Otherwise the DEM work is
-    done here, by a DemSchedule of `dem`.
+    Yields (topic, stamp_ns, message-or-raw-bytes) to write, and work to do later, in
+    order, as (DEFERRED, stamp_ns, work) (see `drain`): the second half of the detector
+    (ObstacleWork: obstacles and the messages) and, when the DEM takes the detector's
+    ground, the DEM's (DemWork). `replay` hands each kind to a process of its own while
+    this one finds the next cloud's ground; the detector's halves and the DEM each keep
+    their state (ground context; towers seen; the rolling DEM) and see the clouds in
+    order, so the result is the same as one process's. Otherwise the DEM work is done
+    here. Malformed clouds are counted and skipped, like the node drops them.
     """
     cloud_topic = reader.pointcloud_topic(topic)
     odom = _odom_topics(reader)
@@ -274,7 +298,7 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                     and dem.shares_ground_with(detector.cfg))
     max_age = (detector or dem).cfg.odometry_max_age  # type: ignore[union-attr]
     schedule = DemSchedule(dem) if dem is not None and not share_ground else None
-    first_ns = last_ns = last_record_ns = None
+    first_ns = last_ns = None
     n_clouds = reader.count([cloud_topic])
     bar = _progress(None, n_clouds, desc)
     t_start = time.perf_counter()
@@ -291,7 +315,7 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
             msg = reader.deserialize(record)
             stamp_ns = messages.stamp_ns_of(msg.header)
             first_ns = stamp_ns if first_ns is None else first_ns
-            last_ns, last_record_ns = stamp_ns, record.stamp_ns
+            last_ns = stamp_ns
             pose = poses.nearest(stamp_ns, max_age)
             if use_odom and pose is None:
                 stats.rejected += 1
@@ -300,16 +324,15 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                 continue
             t0 = time.perf_counter()
             try:
-                work = None
+                deferred: list = []
                 if detector is not None:
-                    outputs, det_stats = detector.process(msg, pose)
-                    for name, out in outputs:
-                        yield "/" + name, record.stamp_ns, out
+                    work = detector.start(msg, pose)
+                    deferred.append(ObstacleWork(record.stamp_ns, work))
                     if share_ground:
-                        work = DemWork(det_stats["stamp_ns"], record.stamp_ns,
-                                       det_stats["frame_id"],
-                                       pose.position if pose is not None else None,
-                                       det_stats["ground_xyz"], det_stats["ground_hag"])
+                        # the detector's ground is all the DEM needs: nothing to parse
+                        deferred.append(DemWork(
+                            work.stamp_ns, record.stamp_ns, work.frame_id,
+                            pose.position if pose is not None else None, *work.dem_ground()))
                 dem_items = (schedule.add_cloud(msg, pose, stamp_ns, record.stamp_ns)
                              if schedule is not None else [])
             except CloudFormatError as exc:
@@ -317,14 +340,14 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                 key = str(exc).split(":")[0][:80]
                 stats.reject_reasons[key] = stats.reject_reasons.get(key, 0) + 1
                 continue
-            stats.latencies.append(time.perf_counter() - t0)
+            if detector is None:  # (the detector's time is counted when its work is done)
+                stats.latencies.append(time.perf_counter() - t0)
             stats.messages += 1
             if stats.messages % 100 == 0:
                 release_free_memory()  # as the nodes do every 10 s
             stats.points += int(msg.width) * int(msg.height)
-            if work is not None:
-                # the detector's ground is all the DEM needs: no parsing, nothing to reject
-                yield DEFERRED, record.stamp_ns, work
+            for job in deferred:
+                yield DEFERRED, record.stamp_ns, job
             yield from dem_items
         if last_ns is not None and share_ground:
             yield DEFERRED, last_ns, DemWork(last_ns, last_ns)
@@ -339,81 +362,106 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
             stats.bag_seconds = (last_ns - first_ns + period) * 1e-9
 
 
-def drain(item: tuple[str, int, Any], schedule: DemSchedule | None = None
+def drain(item: tuple[str, int, Any], *, detector: DetectorStage | None = None,
+          schedule: DemSchedule | None = None, stats: ReplayStats | None = None
           ) -> list[tuple[str, int, Any]]:
-    """The items to write for one item of `run_stages`: deferred DEM work is done now by
-    `schedule`, or, when it was handed to a worker process, its result awaited."""
+    """The items to write for one item of `run_stages`. Deferred work is done now, by
+    `detector` (ObstacleWork) or `schedule` (DemWork), or, when it was handed to a worker
+    process, its result awaited (a Future). The detector's seconds go to `stats`."""
     name, stamp_ns, payload = item
     if name != DEFERRED:
         return [item]
-    if isinstance(payload, DemWork):
+    if isinstance(payload, ObstacleWork):
+        if detector is None:
+            raise ValueError("deferred obstacle work needs a DetectorStage to do it")
+        items, seconds = finish_obstacles(detector, payload)
+    elif isinstance(payload, DemWork):
         if schedule is None:
             raise ValueError("deferred DEM work needs a DemSchedule to do it")
-        return schedule(payload)
-    return payload.result()  # a Future of the DEM worker process
+        items, seconds = schedule(payload)
+    else:
+        items, seconds = payload.result()  # a Future of a worker process
+    if seconds is not None and stats is not None:
+        stats.latencies.append(seconds)
+    return items
 
 
-# The DEM worker process's schedule (`replay`): one process, one DEM, work in order.
+# The worker processes of `replay`: one for the detector's second half, one for the DEM,
+# each with its own state, doing its work in the order it was given.
+_WORKER_DETECTOR: DetectorStage | None = None
 _WORKER_SCHEDULE: DemSchedule | None = None
 _WORKER_DONE = 0
 
 
-def _start_dem_worker(cfg: DemBuilderConfig) -> None:
+def _start_worker(det_cfg: ObstacleDetectorConfig | None, dem_cfg: DemBuilderConfig | None
+                  ) -> None:
     import signal
 
     from lidar_obstacles.core.arrays import single_threaded_blas
 
-    global _WORKER_SCHEDULE
+    global _WORKER_DETECTOR, _WORKER_SCHEDULE
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     single_threaded_blas()
-    _WORKER_SCHEDULE = DemSchedule(DemStage(cfg))
+    _WORKER_DETECTOR = DetectorStage(det_cfg) if det_cfg is not None else None
+    _WORKER_SCHEDULE = DemSchedule(DemStage(dem_cfg)) if dem_cfg is not None else None
 
 
-def _dem_work_in_worker(work: DemWork) -> list[tuple[str, int, bytes]]:
+def _work_in_worker(job: ObstacleWork | DemWork) -> Done:
     global _WORKER_DONE
-    assert _WORKER_SCHEDULE is not None, "the DEM worker was not started"
     _WORKER_DONE += 1
     if _WORKER_DONE % 100 == 0:
         release_free_memory()  # as the nodes do every 10 s
-    return _WORKER_SCHEDULE(work)
+    if isinstance(job, ObstacleWork):
+        assert _WORKER_DETECTOR is not None, "no detector in this worker"
+        return finish_obstacles(_WORKER_DETECTOR, job)
+    assert _WORKER_SCHEDULE is not None, "no DEM in this worker"
+    return _WORKER_SCHEDULE(job)
 
 
-class _DemProcess:
-    """The DEM of `replay` in a second process: the detector keeps one core, the DEM takes
-    the other (threads would share one interpreter lock). One worker, so its work is done
-    in the order it was given; the results are futures, awaited by the writer in order.
+class _WorkerProcesses:
+    """`replay`'s deferred work in two more processes: the detector's second half in one,
+    the DEM in the other, while this process reads the bag and finds the ground (threads
+    would share one interpreter lock). One worker each, so each does its work in the order
+    given; the results are futures, awaited by the writer in bag order.
 
     Forked, not spawned: a spawned child re-imports the caller's main module, which runs an
-    unguarded script a second time. Started before the writer thread and the progress bar,
-    so that the fork copies a process with no other threads."""
+    unguarded script a second time. Both are forked at once, before the writer thread and
+    the progress bar exist, so that each fork copies a process with no other threads."""
 
-    def __init__(self, cfg: DemBuilderConfig) -> None:
+    def __init__(self, det_cfg: ObstacleDetectorConfig, dem_cfg: DemBuilderConfig | None
+                 ) -> None:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        self._pool = ProcessPoolExecutor(
-            max_workers=1, mp_context=multiprocessing.get_context("fork"),
-            initializer=_start_dem_worker, initargs=(cfg,))
-        self._pool.submit(int).result()  # the fork happens now
+        ctx = multiprocessing.get_context("fork")
+        self._pools = {kind: ProcessPoolExecutor(max_workers=1, mp_context=ctx,
+                                                 initializer=_start_worker, initargs=args)
+                       for kind, args in (("obstacles", (det_cfg, None)),
+                                          ("dem", (None, dem_cfg))) if args != (None, None)}
+        for pool in self._pools.values():
+            pool.submit(int)  # the forks happen now, before any other thread exists
 
-    def submit(self, work: DemWork):
-        """A Future of the (topic, stamp ns, CDR bytes) items of `work`."""
-        return self._pool.submit(_dem_work_in_worker, work)
+    def submit(self, job: ObstacleWork | DemWork):
+        """A Future of the job's `Done`."""
+        return self._pools["obstacles" if isinstance(job, ObstacleWork) else "dem"].submit(
+            _work_in_worker, job)
 
     def close(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        for pool in self._pools.values():
+            pool.shutdown(wait=True, cancel_futures=True)
 
 
 class _BackgroundWriter:
-    """Serializes and writes on one thread, in order, awaiting the DEM worker's results
-    where they come, while the caller classifies the next cloud. The queue is short, so
-    memory stays bounded; an error on the thread is raised in the caller."""
+    """Serializes and writes on one thread, in order, awaiting the worker processes'
+    results where they come, while the caller finds the next cloud's ground. The queue is
+    short, so memory stays bounded; an error on the thread is raised in the caller."""
 
-    def __init__(self, bag: BagWriter, depth: int = 4) -> None:
+    def __init__(self, bag: BagWriter, stats: ReplayStats, depth: int = 8) -> None:
         import queue
         import threading
 
         self._bag = bag
+        self._stats = stats
         self._queue: queue.Queue = queue.Queue(maxsize=depth)
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="replay-writer", daemon=True)
@@ -424,7 +472,7 @@ class _BackgroundWriter:
             if self._error is not None:
                 continue  # keep taking items so that the producer never blocks for ever
             try:
-                for name, stamp_ns, msg in drain(item):
+                for name, stamp_ns, msg in drain(item, stats=self._stats):
                     self._bag.write(name, stamp_ns, msg if isinstance(msg, bytes) else _serialize(msg))
             except BaseException as exc:  # noqa: BLE001 - handed to the caller
                 self._error = exc
@@ -457,23 +505,22 @@ def replay(src: Path, out: Path, *, topic: str | None = None, params_file: Path 
         for t in reader.topics():
             if t.msgtype != POINTCLOUD2 and t.topic not in OUTPUT_TYPES:
                 bag.add_topic(t.topic, t.msgtype, transient_local=t.topic == CRS_TOPIC)
-        # (when the DEM finds its own ground, run_stages does its work: no second process)
-        dem_process = (_DemProcess(dem_cfg) if dem is not None
-                       and dem.shares_ground_with(det_cfg) else None)
+        # (when the DEM finds its own ground, run_stages does its work here)
+        workers = _WorkerProcesses(det_cfg, dem_cfg if dem is not None
+                                   and dem.shares_ground_with(det_cfg) else None)
         try:
-            writer = _BackgroundWriter(bag)
+            writer = _BackgroundWriter(bag, stats)
             try:
                 for name, stamp_ns, payload in run_stages(
                         reader, topic=topic, detector=detector, dem=dem, stats=stats,
                         passthrough=True):
-                    if name == DEFERRED and dem_process is not None:
-                        payload = dem_process.submit(payload)
+                    if name == DEFERRED:
+                        payload = workers.submit(payload)
                     writer.put((name, stamp_ns, payload))
             finally:
                 writer.close()
         finally:
-            if dem_process is not None:
-                dem_process.close()
+            workers.close()
         stats.wall_seconds = time.perf_counter() - t_start  # the writing included
         if stats.messages == 0:
             raise BagError(f"no cloud of {src} could be processed "

@@ -13,7 +13,7 @@ import numpy as np
 
 from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
 from lidar_obstacles.core.arrays import all_columns
-from lidar_obstacles.core.pipeline import DemPipeline, ObstacleDetector
+from lidar_obstacles.core.pipeline import DemPipeline, GroundStep, ObstacleDetector
 from lidar_obstacles.errors import CloudFormatError
 from lidar_obstacles.io.pointcloud2 import append_fields, read_points, select_points, xyz_of
 from lidar_obstacles.ros import messages
@@ -76,6 +76,27 @@ def prepare(msg, *, keep_non_finite: bool, max_points: int, pose: Pose | None,
     return Prepared(points, xyz, messages.stamp_ns_of(msg.header), frame)
 
 
+@dataclass(frozen=True)
+class DetectorWork:
+    """A cloud between `DetectorStage.start` and `finish`: its decoded points (1-D
+    structured, in the output frame), stamp and frame, which of them are finite (N,) bool,
+    the ground step of those, and the seconds spent so far. Plain data and nothing more
+    (`replay` hands it to another process)."""
+
+    points: np.ndarray
+    stamp_ns: int
+    frame_id: str
+    finite: np.ndarray
+    ground: GroundStep
+    seconds: float
+
+    def dem_ground(self) -> tuple[np.ndarray, np.ndarray]:
+        """(G, 3) float64 m ground points and their (G,) m height above the ground surface:
+        what `dem_builder` would find itself with `dem.ground_source: detector`."""
+        g = self.ground
+        return g.xyz[g.ground], g.height_above_ground[g.ground]
+
+
 def _attr(points: np.ndarray, name: str) -> np.ndarray | None:
     names = points.dtype.names or ()
     return np.asarray(points[name]) if name in names else None
@@ -94,24 +115,38 @@ class DetectorStage:
 
     def process(self, msg, pose: Pose | None = None) -> tuple[list[tuple[str, object]], dict]:
         """Returns the messages to publish and a stats dict (points, timings)."""
+        return self.finish(self.start(msg, pose))
+
+    def start(self, msg, pose: Pose | None = None) -> DetectorWork:
+        """The first half of `process`: decode the cloud (CloudFormatError when malformed)
+        and find its ground."""
         cfg = self.cfg
         t0 = time.perf_counter()
         prep = prepare(msg, keep_non_finite=cfg.input.keep_non_finite,
                        max_points=cfg.input.max_points, pose=pose,
                        transform=cfg.use_odometry)
         finite = all_columns(np.isfinite(prep.xyz))
-        result = self.pipeline.process(
+        step = self.pipeline.ground_step(
             prep.xyz[finite], stamp=prep.stamp_ns * 1e-9,
             vehicle_xyz=pose.position if pose is not None else None)
-        n = len(prep.points)
+        return DetectorWork(prep.points, prep.stamp_ns, prep.frame_id, finite, step,
+                            time.perf_counter() - t0)
+
+    def finish(self, work: DetectorWork) -> tuple[list[tuple[str, object]], dict]:
+        """The second half of `process`: obstacles and the messages to publish, with a
+        stats dict (points, timings)."""
+        t0 = time.perf_counter()
+        finite = work.finite
+        result = self.pipeline.obstacle_step(work.ground)
+        n = len(work.points)
         classes = np.full(n, 7, np.uint8)  # non-finite points: noise, never ground
         hag = np.full(n, np.nan, np.float32)
         ground = np.zeros(n, bool)
         classes[finite], hag[finite], ground[finite] = (
             result.classes, result.height_above_ground, result.ground)
-        out_points = append_fields(prep.points, {"class": classes, "height_above_ground": hag},
+        out_points = append_fields(work.points, {"class": classes, "height_above_ground": hag},
                                    overwrite=True)
-        hdr = messages.header(prep.stamp_ns, prep.frame_id)
+        hdr = messages.header(work.stamp_ns, work.frame_id)
         out: list[tuple[str, object]] = [
             ("ground", messages.cloud(select_points(out_points, ground), hdr)),
             ("obstacles", messages.cloud(select_points(out_points, ~ground), hdr)),
@@ -122,9 +157,7 @@ class DetectorStage:
             out.append(("clearance", messages.occupancy(c.cells, c.origin, c.resolution, hdr)))
         stats = {"points_in": n, "ground": int(ground.sum()), "obstacles": int((~ground).sum()),
                  "objects": len(result.objects), "timings": dict(result.timings),
-                 "seconds": time.perf_counter() - t0, "classes": classes,
-                 "ground_xyz": prep.xyz[ground], "ground_hag": hag[ground],
-                 "frame_id": prep.frame_id, "stamp_ns": prep.stamp_ns}
+                 "seconds": work.seconds + time.perf_counter() - t0, "classes": classes}
         return out, stats
 
 
