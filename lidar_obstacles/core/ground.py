@@ -803,6 +803,11 @@ def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
         if len(rim):
             ground = ground.copy()
             ground[rim] = True
+            # The surface through them too: their height above ground is then ~0 (the
+            # surface in-painted across the step put them metres up, and the DEM, which
+            # takes only the ground near the surface, lost the rims).
+            z_kept[rim] = z[rim]
+            surface = fill(_grid_min(flat, z_kept, shape, out=grid, empty=np.inf))
     z_ground = at(surface)
     return ground, z_ground
 

@@ -1,9 +1,11 @@
 """The pipelines the nodes and `replay` share: one object per node, fed one cloud at a time.
 
 `ObstacleDetector.process` runs ground filtering (with the rolling ground context of earlier
-messages), obstacle classification and the clearance grid. `DemPipeline.process` finds the
+messages; `ground_step`), then obstacle classification and the clearance grid
+(`obstacle_step`, which remembers the towers it saw). `DemPipeline.process` finds the
 ground (K-means or the detector's filter) and updates the rolling DEM. Results are values;
-the only long-lived state is the ground context and the rolling DEM, each one explicit object.
+the only long-lived state is the ground context, the towers and the rolling DEM, each held
+by one explicit object, so the halves can run in different processes (`replay`).
 """
 from __future__ import annotations
 
