@@ -234,3 +234,23 @@ def test_isolated_points_match_a_brute_force_count():
             expected = ((d < radius).sum(axis=1) - 1) < k
             assert np.array_equal(_isolated(pts, radius, k), expected)
     assert not _isolated(pts, 3.0, 0).any()
+
+
+def test_neighbour_pairs_match_a_brute_force_search():
+    """Every pair within the radius, the radius included, sorted by query then data
+    point; none when the sets are apart or empty."""
+    from scipy.spatial.distance import cdist
+
+    from lidar_obstacles.core.obstacles import neighbour_pairs
+
+    rng = np.random.default_rng(8)
+    query = np.round(rng.uniform(0, 20, (600, 3)) * 4) / 4  # on a 0.25 m lattice
+    data = np.round(rng.uniform(5, 10, (150, 3)) * 4) / 4
+    data[:20] = query[:20] + (0.0, 0.0, 1.0)  # exactly 1 m away
+    i, j = neighbour_pairs(query, data, 1.0)
+    ei, ej = np.nonzero(cdist(query, data) <= 1.0)  # row-major: sorted by i, then j
+    assert len(ei) > 50 and set(range(20)) <= set(ei.tolist())
+    assert np.array_equal(i, ei) and np.array_equal(j, ej)
+    far_i, _ = neighbour_pairs(query[:, :2], data[:, :2] + 100.0, 1.0)
+    empty_i, empty_j = neighbour_pairs(query, data[:0], 1.0)
+    assert len(far_i) == len(empty_i) == len(empty_j) == 0

@@ -104,6 +104,27 @@ def search_tree(points: np.ndarray) -> cKDTree:
     return cKDTree(points, balanced_tree=False, compact_nodes=False)
 
 
+def neighbour_pairs(query: np.ndarray, data: np.ndarray, radius: float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Every pair (i, j) of (Q, D) query and (P, D) data points no more than `radius` m
+    apart, as two int64 arrays sorted by i, then j: what cKDTree.query_ball_point lists,
+    without a Python list per query point. Those lists cost ~200 ms on a forest strip
+    whose wire is followed through ~30 000 crown points for 12 rounds; this takes ~10 ms.
+    Only the query points within the data's box (grown by the radius) are searched."""
+    none = np.zeros(0, np.int64)
+    if len(query) == 0 or len(data) == 0:
+        return none, none
+    lo, hi = column_min(data) - radius, column_max(data) + radius
+    near = np.flatnonzero(all_columns((query >= lo) & (query <= hi)))
+    if len(near) == 0:
+        return none, none
+    pairs = search_tree(query[near]).sparse_distance_matrix(
+        search_tree(data), radius, output_type="ndarray")
+    i, j = near[pairs["i"]], pairs["j"].astype(np.int64)
+    order = np.lexsort((j, i))
+    return i[order], j[order]
+
+
 def _workers(n_queries: int, k: int = 1) -> int:
     """Threads for a cKDTree query of k neighbours each: all cores only when the query is
     large enough to pay for starting them (~1 ms per call on a 2-core machine, more than
@@ -308,14 +329,10 @@ def _empty_below(xyz: np.ndarray, cand: np.ndarray, others: np.ndarray) -> np.nd
     others = others[near]
     if len(others) == 0:
         return ok
-    tree = search_tree(xyz[others, :2])
-    lists = tree.query_ball_point(xyz[cand, :2], r=1.0, workers=_workers(len(cand)))
-    lens = np.fromiter((len(x) for x in lists), np.int64, len(lists))
-    if lens.sum() == 0:
+    owner, idx = neighbour_pairs(xyz[cand, :2], xyz[others, :2], 1.0)
+    if len(owner) == 0:
         return ok
-    owner = np.repeat(np.arange(len(cand)), lens)
-    idx = others[np.concatenate([np.asarray(x, np.int64) for x in lists if len(x)])]
-    dz = xyz[cand[owner], 2] - xyz[idx, 2]
+    dz = xyz[cand[owner], 2] - xyz[others[idx], 2]
     blocked = (dz > 0.5) & (dz < WIRE_GAP)
     ok[np.unique(owner[blocked])] = False
     return ok
@@ -378,13 +395,10 @@ def _follow_wires(pts: np.ndarray, allowed: np.ndarray, axis: np.ndarray,
         free = np.flatnonzero(allowed & ~is_wire)
         if len(free) == 0 or len(front) == 0:
             return
-        near = search_tree(pts[front]).query_ball_point(pts[free], r=WIRE_STEP,
-                                                    workers=_workers(len(free)))
-        lens = np.fromiter((len(x) for x in near), np.int64, len(near))
-        if lens.sum() == 0:
+        owner, src = neighbour_pairs(pts[free], pts[front], WIRE_STEP)
+        if len(owner) == 0:
             return
-        owner = np.repeat(free, lens)
-        src = front[np.concatenate([np.asarray(x, np.int64) for x in near if len(x)])]
+        owner, src = free[owner], front[src]
         perp = _off_line(pts[owner], pts[src], line_axis[src])
         ok = (perp < WIRE_TUBE) & (_off_line(pts[owner], origin[src], line_axis[src])
                                    < WIRE_DRIFT)
