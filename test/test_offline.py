@@ -162,9 +162,12 @@ def test_a_failing_write_stops_replay_with_its_error(sim_bag, tmp_path, monkeypa
         raise OSError("disk full")
 
     monkeypatch.setattr(BagWriter, "write", broken)
+    shared_before = set(Path("/dev/shm").glob("psm_*"))
     with pytest.raises(OSError, match="disk full"):
         replay(sim_bag, tmp_path / "out")
     assert list(tmp_path.iterdir()) == []  # nothing half-written left behind
+    # nor any cloud or result left in shared memory by the work cut short
+    assert set(Path("/dev/shm").glob("psm_*")) <= shared_before
 
 
 @pytest.mark.slow

@@ -13,7 +13,8 @@ import numpy as np
 
 from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
 from lidar_obstacles.core.arrays import all_columns
-from lidar_obstacles.core.pipeline import DemPipeline, GroundStep, ObstacleDetector
+from lidar_obstacles.core.pipeline import (DemPipeline, GroundStep, ObstacleDetector,
+                                           ObstacleResult)
 from lidar_obstacles.errors import CloudFormatError
 from lidar_obstacles.io.pointcloud2 import append_fields, read_points, select_points, xyz_of
 from lidar_obstacles.ros import messages
@@ -135,9 +136,21 @@ class DetectorStage:
     def finish(self, work: DetectorWork) -> tuple[list[tuple[str, object]], dict]:
         """The second half of `process`: obstacles and the messages to publish, with a
         stats dict (points, timings)."""
+        return self.publish(work, *self.classify(work.ground))
+
+    def classify(self, ground: GroundStep) -> tuple[ObstacleResult, float]:
+        """The obstacles of a cloud whose ground was found, and the seconds it took. Keeps
+        state (the towers seen), so clouds come in order; `replay` runs it in a process
+        of its own."""
+        t0 = time.perf_counter()
+        return self.pipeline.obstacle_step(ground), time.perf_counter() - t0
+
+    def publish(self, work: DetectorWork, result: ObstacleResult, seconds: float
+                ) -> tuple[list[tuple[str, object]], dict]:
+        """The messages of a classified cloud, with a stats dict (points, timings, the
+        seconds of all its work). Keeps no state."""
         t0 = time.perf_counter()
         finite = work.finite
-        result = self.pipeline.obstacle_step(work.ground)
         n = len(work.points)
         classes = np.full(n, 7, np.uint8)  # non-finite points: noise, never ground
         hag = np.full(n, np.nan, np.float32)
@@ -157,7 +170,8 @@ class DetectorStage:
             out.append(("clearance", messages.occupancy(c.cells, c.origin, c.resolution, hdr)))
         stats = {"points_in": n, "ground": int(ground.sum()), "obstacles": int((~ground).sum()),
                  "objects": len(result.objects), "timings": dict(result.timings),
-                 "seconds": work.seconds + time.perf_counter() - t0, "classes": classes}
+                 "seconds": work.seconds + seconds + time.perf_counter() - t0,
+                 "classes": classes}
         return out, stats
 
 

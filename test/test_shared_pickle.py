@@ -1,0 +1,77 @@
+"""Objects handed between processes with their buffers in shared memory (`replay`)."""
+from __future__ import annotations
+
+import multiprocessing
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lidar_obstacles.io.shared_pickle import discard_shared, from_shared, to_shared
+
+SHM = Path("/dev/shm")
+
+
+def blocks() -> set[Path]:
+    return set(SHM.glob("psm_*"))
+
+
+def _round_trip_in_child(shared, out):
+    obj = from_shared(shared)
+    out.put((obj["xyz"].sum(), bytes(obj["cdr"])))
+
+
+@pytest.fixture
+def cloud():
+    rng = np.random.default_rng(3)
+    points = np.zeros(1000, dtype=[("x", "f8"), ("y", "f8"), ("z", "f8"), ("i", "u2")])
+    points["x"] = rng.uniform(size=1000)
+    return {"xyz": rng.uniform(size=(5000, 3)), "points": points, "ground": rng.uniform(size=9) > 0.5,
+            "cdr": pickle.PickleBuffer(b"\x00\x01" * 4000), "frame": "map", "n": 7}
+
+
+def test_round_trip_keeps_every_value_and_frees_the_block(cloud):
+    before = blocks()
+    shared = to_shared(cloud)
+    assert shared.block is not None and len(shared.head) < 2000  # the arrays are not in it
+    assert len(blocks() - before) == 1
+    back = from_shared(shared)
+    assert blocks() == before
+    for key in ("xyz", "points", "ground"):
+        np.testing.assert_array_equal(back[key], cloud[key])
+        assert back[key].flags.writeable
+    assert bytes(back["cdr"]) == b"\x00\x01" * 4000
+    assert (back["frame"], back["n"]) == ("map", 7)
+    back["xyz"][0, 0] = -1.0  # a copy: the sender's arrays are its own
+    assert cloud["xyz"][0, 0] >= 0.0
+
+
+def test_small_objects_need_no_block():
+    shared = to_shared(("map", 3, None))
+    assert shared.block is None
+    assert from_shared(shared) == ("map", 3, None)
+
+
+def test_another_process_reads_it(cloud):
+    before = blocks()
+    shared = to_shared(cloud)
+    ctx = multiprocessing.get_context("fork")
+    out = ctx.Queue()
+    child = ctx.Process(target=_round_trip_in_child, args=(shared, out))
+    child.start()
+    total, cdr = out.get(timeout=60)
+    child.join(timeout=60)
+    assert total == pytest.approx(cloud["xyz"].sum())
+    assert cdr == b"\x00\x01" * 4000
+    assert blocks() == before
+
+
+def test_discard_frees_what_was_never_read(cloud):
+    before = blocks()
+    shared = to_shared(cloud)
+    discard_shared(shared)
+    assert blocks() == before
+    discard_shared(shared)  # gone already: nothing to do
+    with pytest.raises(FileNotFoundError):
+        from_shared(shared)
