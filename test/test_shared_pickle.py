@@ -75,3 +75,18 @@ def test_discard_frees_what_was_never_read(cloud):
     discard_shared(shared)  # gone already: nothing to do
     with pytest.raises(FileNotFoundError):
         from_shared(shared)
+
+
+def test_without_shared_memory_it_goes_through_the_pipe(cloud, monkeypatch):
+    """A container's /dev/shm may be tiny or full: the object then travels whole."""
+    import lidar_obstacles.io.shared_pickle as sp
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(sp, "SharedMemory", full)
+    shared = to_shared(cloud)
+    assert shared.block is None and len(shared.head) > 40000
+    back = from_shared(shared)
+    np.testing.assert_array_equal(back["points"], cloud["points"])
+    assert bytes(back["cdr"]) == b"\x00\x01" * 4000

@@ -36,7 +36,12 @@ def to_shared(obj: Any) -> SharedPickle:
         return SharedPickle(head, None, ())
     raws = [b.raw() for b in buffers]
     sizes = tuple(r.nbytes for r in raws)
-    block = SharedMemory(create=True, size=max(sum(sizes), 1))
+    try:
+        block = SharedMemory(create=True, size=max(sum(sizes), 1))
+    except OSError:
+        # No shared memory to be had (a container's small /dev/shm is full, or there is
+        # none): the whole object through the pipe, slower but the same.
+        return SharedPickle(pickle.dumps(obj, protocol=5), None, ())
     try:
         offset = 0
         for raw in raws:
