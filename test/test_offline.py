@@ -4,7 +4,9 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -13,6 +15,7 @@ from conftest import DATA, REPO, data_file
 from lidar_obstacles.cli import main
 from lidar_obstacles.io.bags import BagReader
 from lidar_obstacles.io.pointcloud2 import read_points
+from lidar_obstacles.ros import offline
 
 SHARED_FILES = sorted(str(p.relative_to(DATA)) for p in DATA.rglob("*.laz")) if DATA.is_dir() else []
 
@@ -245,3 +248,34 @@ def test_corrupt_bag_and_bad_params_exit_2(sim_bag, tmp_path):
     assert res.returncode == 2
     assert "ransac.distance_threshold" in res.stderr and len(res.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "o").exists()
+
+
+class _Graph:
+    """Stands in for a node's graph queries: the subscriptions change at given times."""
+
+    def __init__(self, script: list[tuple[float, list]]) -> None:
+        self.t0 = time.monotonic()
+        self.script = script
+
+    def get_subscriptions_info_by_topic(self, topic: str) -> list:
+        now = time.monotonic() - self.t0
+        return [s for t, subs in self.script if t <= now for s in subs][-1:]
+
+
+def _sub(name: str, reliability: int) -> SimpleNamespace:
+    return SimpleNamespace(node_namespace="/uav1", node_name=name,
+                           qos_profile=SimpleNamespace(reliability=reliability))
+
+
+def test_play_waits_for_subscriptions_to_settle():
+    # A subscriber appears best effort at 0.1 s and turns reliable at 0.5 s (a node on
+    # `input.reliability: auto`): play starts only after a quiet period past the switch.
+    graph = _Graph([(0.1, [_sub("det", 2)]), (0.5, [_sub("det", 1)])])
+    t0 = time.monotonic()
+    assert offline._subscriptions_settled(graph, ["/uav1/points"], quiet_s=0.6, timeout_s=5)
+    assert 1.1 <= time.monotonic() - t0 < 2.0
+    # Nobody subscribes: give up after the timeout.
+    t0 = time.monotonic()
+    assert not offline._subscriptions_settled(_Graph([]), ["/uav1/points"], quiet_s=0.2,
+                                              timeout_s=0.5)
+    assert 0.5 <= time.monotonic() - t0 < 1.0

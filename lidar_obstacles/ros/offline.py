@@ -686,13 +686,38 @@ def _msg_class(msgtype: str):
     return getattr(importlib.import_module(f"{pkg}.msg"), name)
 
 
+def _subscriptions_settled(node, topics: list[str], *, quiet_s: float, timeout_s: float) -> bool:
+    """Wait until the subscriptions to `topics` exist and have not changed for `quiet_s`.
+
+    A node with `input.reliability: auto` sees a new reliable publisher, then re-creates its
+    subscription as reliable at its next once-a-second check; clouds sent before that go
+    best effort (lossy for large clouds) or are lost in the switch. `quiet_s` is longer than
+    that check. False when nothing settled within `timeout_s` (no subscriber, say).
+    """
+    deadline = time.monotonic() + timeout_s
+    seen: tuple | None = None
+    since = time.monotonic()
+    while time.monotonic() < deadline:
+        now = tuple(sorted((t, i.node_namespace, i.node_name, int(i.qos_profile.reliability))
+                           for t in topics for i in node.get_subscriptions_info_by_topic(t)))
+        if now != seen:
+            seen, since = now, time.monotonic()
+        elif now and time.monotonic() - since >= quiet_s:
+            return True
+        time.sleep(0.05)
+    return False
+
+
 def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] | None = None,
-         namespace: str = "", start_delay: float = 2.5) -> dict:
+         namespace: str = "", settle_s: float = 2.5, wait_s: float = 15.0) -> dict:
     """Publish a bag into the live ROS graph at its recorded rate (scaled by `rate`).
 
     Bag topics are published relative to `namespace` (``/points`` -> ``/uav1/points``).
+    Playing starts once the subscribers are matched and unchanged for `settle_s`, or after
+    `wait_s` if none come.
     """
     import rclpy
+    from rclpy.duration import Duration
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
     if rate <= 0:
@@ -712,9 +737,10 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
             pubs[t.topic] = node.create_publisher(_msg_class(t.msgtype), t.topic.lstrip("/"), qos)
         sent = 0
         try:
-            # Let discovery match subscribers before the first message; nodes with
-            # `input.reliability: auto` re-check publishers every second and switch.
-            time.sleep(start_delay)
+            names = [p.topic_name for p in pubs.values()]
+            if not _subscriptions_settled(node, names, quiet_s=settle_s, timeout_s=wait_s):
+                print(f"play: no steady subscriber on {', '.join(names)} after {wait_s:g} s; "
+                      "playing anyway", file=sys.stderr)
             while True:
                 t0_wall = time.monotonic()
                 t0_bag = None
@@ -730,6 +756,13 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
                         sent += 1
                 if not loop:
                     break
+            # Reliable delivery needs the publisher alive until the subscribers have the data:
+            # destroyed at once, the last cloud was lost.
+            unacked = [t for t, p in pubs.items()
+                       if not p.wait_for_all_acked(Duration(seconds=wait_s))]
+            if unacked:
+                print(f"play: {', '.join(unacked)} not acknowledged by every subscriber after "
+                      f"{wait_s:g} s", file=sys.stderr)
         except KeyboardInterrupt:
             pass
         finally:
