@@ -310,6 +310,34 @@ def test_dem_takes_bare_earth_from_the_detector_ground():
     assert np.nanmean(grid.elevation) < 0.05  # with all the detector's ground: ~0.09
 
 
+
+def test_band_widens_on_steep_sparse_ground_only():
+    from lidar_obstacles.core.dem import band_allowance
+    from lidar_obstacles.core.pipeline import bare_earth
+
+    rng = np.random.default_rng(8)
+    # ISPRS-like: a 1:2 slope, one point per 4 m^2 (spacing 2 m); the filter's surface is
+    # off by up to 0.35 m there (in-painted between the points). The band becomes
+    # 0.15 + 0.5 x ~0.5 m (spacing 2 m x half the slope: the median rise to 4 cells).
+    xy = rng.uniform(0, 200, (10000, 2))
+    slope = np.column_stack([xy, 0.5 * xy[:, 0]])
+    allowance = band_allowance(slope, np.zeros(len(xy), np.float32))
+    assert 0.4 < np.median(allowance) < 0.7
+    off = rng.uniform(0.0, 0.35, len(xy)).astype(np.float32)
+    dem = DemBuilderConfig().dem
+    assert bare_earth(slope, off, dem).mean() > 0.95
+    fixed = replace(DemBuilderConfig(), {"dem.band_slope": 0.0}).dem
+    assert bare_earth(slope, off, fixed).mean() < 0.5
+    # dense (0.2 m) flat ground: the band stays 0.15 m and grass 0.3 m up still goes
+    xy = rng.uniform(0, 40, (40000, 2))
+    flat = np.column_stack([xy, rng.normal(0, 0.01, len(xy))])
+    assert np.percentile(band_allowance(flat, np.zeros(len(xy))), 99) < 0.02
+    grass = np.full(len(xy), 0.3, np.float32)
+    assert not bare_earth(flat, grass, dem).any()
+    # a NaN height (no surface there) counts as on it; too few points, no allowance
+    assert band_allowance(flat[:1], np.zeros(1)).tolist() == [0.0]
+    assert np.all(band_allowance(flat[:5], np.full(5, np.nan)) == 0.0)
+
 def _hill(rng: np.random.Generator, n: int = 40000, size: float = 100.0) -> np.ndarray:
     """Ground points (n, 3) on a smooth hill: z = 12 exp(-r^2 / 30^2) around the centre of
     a size x size m square (slopes up to 0.34) plus 2 cm noise, ~4 points per m^2."""

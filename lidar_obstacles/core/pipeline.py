@@ -176,27 +176,54 @@ class ObstacleDetector:
             timings=timings)
 
 
+# Points the wider band gives back stay out within this distance (m) of a ground patch the
+# fixed band's pass dropped (ISPRS samp41: a roof taken for ground grew past `patch_area`).
+_BLUNDER_MARGIN = 5.0
+
+
 def bare_earth(xyz: np.ndarray, height_above_ground: np.ndarray, cfg: DemConfig) -> np.ndarray:
     """(G,) bool: which of the detector's ground points xyz (G, 3) float64 metres the DEM
     takes as bare earth.
 
     Two tests, both on the ground points alone (what `replay` hands over): a point more
     than `dem.ground_band` m above the detector's surface (height_above_ground (G,) m,
-    NaN counts as on it; band 0 keeps them all) is low vegetation or a car inside the
-    filter's acceptance band; the remaining points in small patches standing apart from
-    the main ground (`dem.patch_area`, :func:`lidar_obstacles.core.dem.ground_blunders`)
-    are tree crowns, roofs or low blunders the filter took for ground.
+    NaN counts as on it; band 0 keeps them all), widened by `dem.band_slope` x the point
+    spacing x the surface's slope (:func:`lidar_obstacles.core.dem.band_allowance`), is
+    low vegetation or a car inside the filter's acceptance band; the remaining points in
+    small patches standing apart from the main ground (`dem.patch_area`,
+    :func:`lidar_obstacles.core.dem.ground_blunders`) are tree crowns, roofs or low
+    blunders the filter took for ground.
     """
-    from lidar_obstacles.core.dem import ground_blunders
+    from scipy.spatial import cKDTree
+
+    from lidar_obstacles.core.dem import band_allowance, ground_blunders
 
     xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
-    keep = np.ones(len(xyz), bool)
-    if cfg.ground_band > 0:
-        hag = np.nan_to_num(np.asarray(height_above_ground, float), nan=0.0)
-        keep = ~(hag > cfg.ground_band)
-    idx = np.flatnonzero(keep & all_columns(np.isfinite(xyz)))  # the DEM drops the rest
-    keep[idx[ground_blunders(xyz[idx], max_area=cfg.patch_area, rise=cfg.patch_rise,
-                             sink=cfg.patch_sink)]] = False
+    finite = all_columns(np.isfinite(xyz))  # the DEM drops the rest
+    hag = np.asarray(height_above_ground, float)
+    height = np.nan_to_num(hag, nan=0.0)
+    keep = ~(height > cfg.ground_band) if cfg.ground_band > 0 else np.ones(len(xyz), bool)
+
+    def without_blunders(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        idx = np.flatnonzero(mask & finite)
+        dropped = np.zeros(len(xyz), bool)
+        dropped[idx[ground_blunders(xyz[idx], max_area=cfg.patch_area, rise=cfg.patch_rise,
+                                    sink=cfg.patch_sink)]] = True
+        return mask & ~dropped, dropped
+
+    keep, dropped = without_blunders(keep)
+    if cfg.ground_band > 0 and cfg.band_slope > 0:
+        band = cfg.ground_band + cfg.band_slope * band_allowance(xyz, hag)
+        extra = np.flatnonzero(~keep & ~dropped & finite & (height <= band))
+        if len(extra) and dropped.any():
+            # not beside a patch the fixed band's pass dropped: a roof taken for ground
+            # grows past `patch_area` with its points in the wider band, and then stays
+            gap, _ = cKDTree(xyz[dropped, :2]).query(xyz[extra, :2],
+                                                     distance_upper_bound=_BLUNDER_MARGIN)
+            extra = extra[~np.isfinite(gap)]
+        if len(extra):
+            keep[extra] = True
+            keep, _ = without_blunders(keep)
     return keep
 
 
