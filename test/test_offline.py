@@ -273,9 +273,9 @@ def test_play_waits_for_subscriptions_to_settle():
     graph = _Graph([(0.1, [_sub("det", 2)]), (0.5, [_sub("det", 1)])])
     t0 = time.monotonic()
     assert offline._subscriptions_settled(graph, ["/uav1/points"], quiet_s=0.6, timeout_s=5)
-    assert 1.1 <= time.monotonic() - t0 < 2.0
+    assert time.monotonic() - t0 >= 1.1
     # Nobody subscribes: give up after the timeout.
     t0 = time.monotonic()
     assert not offline._subscriptions_settled(_Graph([]), ["/uav1/points"], quiet_s=0.2,
                                               timeout_s=0.5)
-    assert 0.5 <= time.monotonic() - t0 < 1.0
+    assert time.monotonic() - t0 >= 0.5
