@@ -26,6 +26,7 @@ setup(
         "console_scripts": [
             "obstacle_detector = lidar_obstacles.ros.obstacle_detector:main",
             "dem_builder = lidar_obstacles.ros.dem_builder:main",
+            "cloud_simplifier = lidar_obstacles.ros.cloud_simplifier:main",
             "lidar-obstacles = lidar_obstacles.cli:main",
         ],
     },

@@ -77,6 +77,27 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--topic", default=None)
     s.add_argument("--params-file", type=Path, default=None)
     s.add_argument("--crs", default=None, help="e.g. EPSG:32632 (default: from the bag)")
+
+    s = sub.add_parser("simplify", help="K-means++ simplification on normals of a LAS/LAZ "
+                       "file or a bag")
+    s.add_argument("src", type=Path, metavar="IN", help="a LAS/LAZ file or a bag")
+    s.add_argument("out", type=Path, metavar="OUT",
+                   help="a .las/.laz file for a LAS/LAZ input, a bag for a bag")
+    s.add_argument("--params-file", type=Path, default=None,
+                   help="ROS 2 params YAML (`cloud_simplifier`'s `simplify.*`)")
+    s.add_argument("--topic", default=None, help="PointCloud2 topic (default: the only/biggest)")
+    s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+
+    s = sub.add_parser("features", help="Gaussian-map feature points of a LAS/LAZ file or "
+                       "a bag")
+    s.add_argument("src", type=Path, metavar="IN", help="a LAS/LAZ file or a bag")
+    s.add_argument("out", type=Path, metavar="OUT",
+                   help="a .las/.laz file for a LAS/LAZ input, a bag for a bag")
+    s.add_argument("--params-file", type=Path, default=None,
+                   help="ROS 2 params YAML (`obstacle_detector`'s `features.*`)")
+    s.add_argument("--topic", default=None, help="PointCloud2 topic (default: the only/biggest)")
+    s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+
     s = sub.add_parser("evaluate", help="compare the classes with the `classification` field")
     s.add_argument("src", type=Path, metavar="IN",
                    help="a replay's output bag, a labelled bag or a LAS/LAZ file "
@@ -130,6 +151,12 @@ def run(args: argparse.Namespace) -> dict:
     if args.command == "export-dem":
         return offline.export_dem(args.src, args.out, topic=args.topic,
                                   params_file=args.params_file, crs=args.crs)
+    if args.command in ("simplify", "features"):
+        from lidar_obstacles.ros import cloud_tools
+
+        tool = cloud_tools.simplify if args.command == "simplify" else cloud_tools.features
+        return tool(args.src, args.out, params_file=args.params_file, topic=args.topic,
+                    storage=args.storage)
     if args.command == "evaluate":
         from lidar_obstacles import evaluate
 

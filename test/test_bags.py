@@ -46,6 +46,8 @@ def test_rosbag2_round_trip(tmp_path, storage):
     assert len(got) == 3
     for a, b in zip(clouds, got):
         assert a.tobytes() == np.ascontiguousarray(b).tobytes()
+    with BagReader(tmp_path / "bag") as reader:  # a topic the bag lacks has no records
+        assert list(reader.records(["/elsewhere"])) == [] and reader.count(["/elsewhere"]) == 0
 
 
 def test_ros1_bag_is_read(tmp_path):

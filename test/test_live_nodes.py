@@ -221,3 +221,62 @@ def test_bad_parameter_at_start_exits_2():
     rc, log = _stop(proc) if proc.wait(timeout=60) is None else (proc.returncode, proc.stdout.read())
     assert rc == 2, log
     assert "tiling.size" in log
+
+
+def test_cloud_simplifier_node(ros_node):
+    """`cloud_simplifier` for real: clouds in, `points_simplified` out with every field; a
+    runtime change of `simplify.keep` takes effect, an out-of-range one is rejected."""
+    from lidar_obstacles.ros import messages
+
+    rng = np.random.default_rng(0)
+    # a roof (two slopes) on flat ground, with an extra field that must ride along
+    n = 6000
+    pts = np.zeros(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"),
+                             ("ring", "<u2")])
+    pts["x"], pts["y"] = rng.uniform(0, 40, n), rng.uniform(0, 40, n)
+    roof = (np.abs(pts["x"] - 20) < 8) & (np.abs(pts["y"] - 20) < 8)
+    pts["z"] = np.where(roof, 10 - 0.6 * np.abs(pts["y"] - 20), 0.0) + rng.normal(0, 0.02, n)
+    pts["intensity"] = rng.uniform(0, 255, n)
+    pts["ring"] = np.arange(n) % 16
+    got: list = []
+    sub = ros_node.create_subscription(PointCloud2, f"{NS}/points_simplified", got.append,
+                                       QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    pub = ros_node.create_publisher(PointCloud2, f"{NS}/points",
+                                    QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
+    node = _start("lidar_obstacles.ros.cloud_simplifier", "-p", "input.reliability:=reliable")
+    try:
+        assert _spin_until(ros_node, lambda: pub.get_subscription_count() > 0, 60)
+
+        def published_and_received(count: int):
+            def step() -> bool:
+                pub.publish(messages.cloud(pts, messages.header(len(got) * 10**8, "map")))
+                return _spin_until(ros_node, lambda: len(got) >= count, 3.0)
+            return step
+
+        assert _spin_until(ros_node, published_and_received(1), 60)
+        first = read_points(got[0]).reshape(-1)
+        assert first.dtype.names == pts.dtype.names
+        share = len(first) / n
+        assert 0.05 < share < 0.5, share
+        inputs = set(map(tuple, np.column_stack([pts[c] for c in "xyz"]).tolist()))
+        assert set(map(tuple, np.column_stack([first[c] for c in "xyz"]).tolist())) <= inputs
+        # every face orientation is still there: both roof slopes and the ground
+        fx, fy, fz = first["x"], first["y"], first["z"]
+        on_roof = (np.abs(fx - 20) < 7) & (np.abs(fy - 20) < 7) & (fz > 3)
+        assert (on_roof & (fy < 19)).any() and (on_roof & (fy > 21)).any() and (fz < 0.5).any()
+        srv = f"{NS}/cloud_simplifier/set_parameters"
+        ok = _call(ros_node, SetParameters, srv, SetParameters.Request(
+            parameters=[_param("simplify.keep", 0.5)]))
+        assert ok.results[0].successful
+        bad = _call(ros_node, SetParameters, srv, SetParameters.Request(
+            parameters=[_param("simplify.keep", 1.5)]))
+        assert not bad.results[0].successful and "simplify.keep" in bad.results[0].reason
+        before = len(got)
+        assert _spin_until(ros_node, published_and_received(before + 1), 60)
+        later = read_points(got[-1]).reshape(-1)
+        assert len(later) > 1.5 * len(first), (len(later), len(first))
+    finally:
+        ros_node.destroy_subscription(sub)
+        ros_node.destroy_publisher(pub)
+        rc, log = _stop(node)
+    assert rc == 0, log[-3000:]

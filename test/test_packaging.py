@@ -81,8 +81,10 @@ def test_colcon_build_and_installed_node_starts(tmp_path):
     assert build.returncode == 0, build.stdout[-3000:] + build.stderr[-3000:]
     share = ws / "install" / "lidar_obstacles" / "share" / "lidar_obstacles"
     for rel in ("package.xml", "config/obstacle_detector.yaml", "config/dem_builder.yaml",
-                "launch/lidar_obstacles.launch.py"):
+                "config/cloud_simplifier.yaml", "launch/lidar_obstacles.launch.py"):
         assert (share / rel).is_file(), rel
+    for name in ("obstacle_detector", "dem_builder", "cloud_simplifier"):  # the contract's
+        assert (ws / "install" / "lidar_obstacles" / "lib" / "lidar_obstacles" / name).is_file(), name
     assert (ws / "install/lidar_obstacles/share/ament_index/resource_index/packages/"
             "lidar_obstacles").is_file()
     exe = ws / "install" / "lidar_obstacles" / "lib" / "lidar_obstacles" / "obstacle_detector"

@@ -16,7 +16,7 @@ import numpy as np
 
 from lidar_obstacles.config import DemBuilderConfig, DemConfig, ObstacleDetectorConfig
 from lidar_obstacles.core.arrays import all_columns, column_max, column_min
-from lidar_obstacles.core.classes import GROUND
+from lidar_obstacles.core.classes import GROUND, NOISE
 
 TOWER_MEMORY_SECONDS = 60.0  # s: how long a recognised tower is remembered
 TOWER_MEMORY_SIZE = 256  # towers remembered at most (bounded memory on any flight)
@@ -57,6 +57,8 @@ class ObstacleResult:
     ground: (N,) bool. classes: (N,) uint8 ASPRS code (2 ground). height_above_ground: (N,)
     float32 metres (NaN where no surface). object_id: (N,) int32, -1 outside objects.
     objects: the obstacle objects (boxes). timings: seconds per stage, plus "total".
+    edges: (N,) bool, the obstacles' Gaussian-map feature points (crease, edge, corner),
+    or None when `features.enabled` is off.
     """
 
     ground: np.ndarray
@@ -66,6 +68,7 @@ class ObstacleResult:
     objects: tuple
     clearance: ClearanceGrid | None
     timings: dict[str, float] = field(default_factory=dict)
+    edges: np.ndarray | None = None
 
 
 class ObstacleDetector:
@@ -80,6 +83,7 @@ class ObstacleDetector:
         # roofs' RANSAC), so that the halves may run in different processes.
         self._ground_rng = np.random.default_rng(self.cfg.ransac.seed)
         self._obstacle_rng = np.random.default_rng(self.cfg.ransac.seed)
+        self._feature_rng = np.random.default_rng(self.cfg.features.seed)
         self._towers = np.zeros((0, 4))  # x, y, radius (m), stamp (s) of towers seen
 
     def _known_towers(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -107,6 +111,8 @@ class ObstacleDetector:
         if cfg.ransac.seed != self.cfg.ransac.seed:
             self._ground_rng = np.random.default_rng(cfg.ransac.seed)
             self._obstacle_rng = np.random.default_rng(cfg.ransac.seed)
+        if cfg.features.seed != self.cfg.features.seed:
+            self._feature_rng = np.random.default_rng(cfg.features.seed)
         self.cfg = cfg
 
     def process(self, xyz: np.ndarray, *, stamp: float = 0.0,
@@ -167,13 +173,30 @@ class ObstacleDetector:
                                             center_xy=centre, cfg=cfg.clearance)
         t5 = time.perf_counter()
         timings = {**step.timings, "obstacles": t4 - t3, "clearance": t5 - t4}
+        edges = None
+        if cfg.features.enabled:
+            edges = self._obstacle_edges(xyz, ob.classes)
+            timings["features"] = time.perf_counter() - t5
         timings["total"] = sum(timings.values())
         return ObstacleResult(
             ground=ob.classes == GROUND, classes=ob.classes,
             height_above_ground=step.height_above_ground,
             object_id=ob.object_id, objects=ob.objects,
             clearance=ClearanceGrid(cells, np.asarray(origin, float), float(res)),
-            timings=timings)
+            timings=timings, edges=edges)
+
+    def _obstacle_edges(self, xyz: np.ndarray, classes: np.ndarray) -> np.ndarray:
+        """(N,) bool: the Gaussian-map feature points among the obstacle points of xyz
+        (N, 3) m, found on the obstacles alone (not ground, not noise): a roof's edge
+        against the ground beside it is the obstacle's outline, not a feature of it."""
+        from lidar_obstacles.core.features import gaussian_map_features
+
+        solid = (classes != GROUND) & (classes != NOISE)
+        edges = np.zeros(len(xyz), bool)
+        if solid.any():
+            edges[solid] = gaussian_map_features(xyz[solid], cfg=self.cfg.features,
+                                                 rng=self._feature_rng).feature
+        return edges
 
 
 # Points the wider band gives back stay out within this distance (m) of a ground patch the

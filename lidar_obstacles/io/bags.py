@@ -136,6 +136,8 @@ class BagReader:
     def records(self, topics: Sequence[str] | None = None) -> Iterator[BagRecord]:
         """Messages of the given topics (all when None) in time order."""
         conns = [c for c in self._reader.connections if topics is None or c.topic in topics]
+        if topics is not None and not conns:
+            return  # (rosbags reads every connection when given none)
         ros1 = self.is_ros1
         try:
             for conn, stamp, raw in self._reader.messages(connections=conns):

@@ -97,3 +97,35 @@ def read_las(path: str | Path) -> LasCloud:
         points[name] = np.asarray(las[name])
     wkt, epsg = _crs_from_vlrs(las.header)
     return LasCloud(points=points, crs_wkt=wkt, epsg=epsg, has_gps_time="gps_time" in names)
+
+
+def write_las_subset(src: str | Path, keep: np.ndarray, out: str | Path) -> int:
+    """Write the points of LAS/LAZ file `src` where (N,) bool `keep` holds to `out`, every
+    dimension, the header's scales, offsets and CRS records kept; LAZ when `out` ends in
+    .laz. Atomic: written beside `out` and renamed, so a failure leaves no half file.
+    Returns the number of points written. Raises LasError for an unreadable `src`, a
+    `keep` of the wrong length, or an output folder that does not exist."""
+    import os
+
+    import laspy
+
+    src, out = Path(src), Path(out)
+    if not out.parent.is_dir():
+        raise LasError(f"output folder does not exist: {out.parent}")
+    try:
+        las = laspy.read(str(src))
+    except Exception as exc:  # laspy raises many types for corrupt files
+        raise LasError(f"cannot read LAS file {src}: {exc}".splitlines()[0]) from None
+    keep = np.asarray(keep, dtype=bool)
+    if keep.shape != (len(las.points),):
+        raise LasError(f"{src}: keep mask has {keep.shape} entries for {len(las.points)} points")
+    sub = laspy.LasData(las.header)
+    sub.points = las.points[keep]
+    tmp = out.with_name(f".{out.name}.partial-{os.getpid()}{out.suffix}")
+    try:
+        sub.write(str(tmp))
+        os.replace(tmp, out)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return int(keep.sum())

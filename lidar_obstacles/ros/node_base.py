@@ -70,7 +70,7 @@ class PoseBuffer:
 
 
 class PipelineNode(Node):
-    """Base of `obstacle_detector` and `dem_builder`.
+    """Base of `obstacle_detector`, `dem_builder` and `cloud_simplifier`.
 
     Subclasses give the config class, make their stage and implement `process_cloud(msg, pose)`.
     """

@@ -1,4 +1,5 @@
-"""`obstacle_detector` node: ground, obstacles with classes, markers and the clearance grid."""
+"""`obstacle_detector` node: ground, obstacles with classes, markers, the clearance grid and,
+when `features.enabled`, the obstacles' feature points (`obstacle_edges`)."""
 from __future__ import annotations
 
 from nav_msgs.msg import OccupancyGrid
@@ -22,6 +23,8 @@ class ObstacleDetectorNode(PipelineNode):
             "obstacles": self.create_publisher(PointCloud2, "obstacles", qos),
             "obstacle_markers": self.create_publisher(MarkerArray, "obstacle_markers", qos),
             "clearance": self.create_publisher(OccupancyGrid, "clearance", qos),
+            # Always there (`features.enabled` can be switched on at runtime); silent while off.
+            "obstacle_edges": self.create_publisher(PointCloud2, "obstacle_edges", qos),
         }
         self.get_logger().info("ready")
 

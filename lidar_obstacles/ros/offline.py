@@ -37,6 +37,7 @@ OUTPUT_TYPES = {
     "/obstacle_markers": "visualization_msgs/msg/MarkerArray",
     "/clearance": "nav_msgs/msg/OccupancyGrid", "/dem": POINTCLOUD2,
     "/dem_image": "sensor_msgs/msg/Image", "/dem_info": "nav_msgs/msg/MapMetaData",
+    "/obstacle_edges": POINTCLOUD2,  # only with `features.enabled`
 }
 TRANSIENT_LOCAL = {"/dem", "/dem_image", "/dem_info"}
 DEFERRED = ""  # topic of a `run_stages` item that is work to do, not a message (see drain)
@@ -584,6 +585,8 @@ def replay(src: Path, out: Path, *, topic: str | None = None, params_file: Path 
     t_start = time.perf_counter()
     with BagReader(src) as reader, BagWriter(out, storage=storage) as bag:
         for name, msgtype in OUTPUT_TYPES.items():
+            if name == "/obstacle_edges" and not det_cfg.features.enabled:
+                continue
             if with_dem or name not in TRANSIENT_LOCAL:
                 bag.add_topic(name, msgtype, transient_local=name in TRANSIENT_LOCAL)
         for t in reader.topics():

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
+from lidar_obstacles.config import CloudSimplifierConfig, DemBuilderConfig, ObstacleDetectorConfig
 from lidar_obstacles.core.arrays import all_columns
 from lidar_obstacles.core.pipeline import (DemPipeline, GroundStep, ObstacleDetector,
                                            ObstacleResult)
@@ -168,6 +168,10 @@ class DetectorStage:
         if result.clearance is not None:
             c = result.clearance
             out.append(("clearance", messages.occupancy(c.cells, c.origin, c.resolution, hdr)))
+        if result.edges is not None:  # `features.enabled`: the obstacles' feature points
+            edges = np.zeros(n, bool)
+            edges[finite] = result.edges
+            out.append(("obstacle_edges", messages.cloud(select_points(out_points, edges), hdr)))
         stats = {"points_in": n, "ground": int(ground.sum()), "obstacles": int((~ground).sum()),
                  "objects": len(result.objects), "timings": dict(result.timings),
                  "seconds": work.seconds + seconds + time.perf_counter() - t0,
@@ -238,3 +242,41 @@ class DemStage:
                               self.frame_id)
         dem_cloud, image, info = messages.dem_messages(grid, hdr)
         return [("dem", dem_cloud), ("dem_image", image), ("dem_info", info)]
+
+
+class SimplifierStage:
+    """`cloud_simplifier`'s work on one message: the kept points, with all their fields."""
+
+    def __init__(self, cfg: CloudSimplifierConfig) -> None:
+        self.cfg = cfg
+        # One stream for the whole flight: the same bag gives the same clouds, in order.
+        self.rng = np.random.default_rng(cfg.simplify.seed)
+
+    def reconfigure(self, cfg: CloudSimplifierConfig) -> None:
+        if cfg.simplify.seed != self.cfg.simplify.seed:
+            self.rng = np.random.default_rng(cfg.simplify.seed)
+        self.cfg = cfg
+
+    def process(self, msg, pose: Pose | None = None) -> tuple[list[tuple[str, object]], dict]:
+        """Returns [("points_simplified", cloud)] and a stats dict (points in and out, the
+        TIN raster correlation of the kept points with all of them, timings). Non-finite
+        points are never kept. Raises CloudFormatError for a malformed cloud."""
+        from lidar_obstacles.core.simplify import simplify
+
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        prep = prepare(msg, keep_non_finite=cfg.input.keep_non_finite,
+                       max_points=cfg.input.max_points, pose=pose,
+                       transform=cfg.use_odometry)
+        finite = all_columns(np.isfinite(prep.xyz))
+        points = prep.points[finite]
+        result = simplify(prep.xyz[finite], cfg=cfg.simplify,
+                          intensity=_attr(points, "intensity"),
+                          return_number=_attr(points, "return_number"), rng=self.rng)
+        hdr = messages.header(prep.stamp_ns, prep.frame_id)
+        out = [("points_simplified", messages.cloud(select_points(points, result.keep), hdr))]
+        stats = {"points_in": len(prep.points), "points_out": int(result.keep.sum()),
+                 "r": result.r if np.isfinite(result.r) else None, "k": result.k,
+                 "reason": result.reason,
+                 "timings": dict(result.timings), "seconds": time.perf_counter() - t0}
+        return out, stats

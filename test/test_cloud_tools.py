@@ -1,0 +1,111 @@
+"""`lidar-obstacles simplify` and `features` on LAS/LAZ files and bags, and the detector's
+`obstacle_edges` in `replay`: outputs keep every field, land atomically, and bad input is
+one line with exit status 2."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import data_file
+from lidar_obstacles.io.bags import BagReader
+from lidar_obstacles.io.las import read_las
+from test_offline import cli_subprocess, clouds, run_cli
+
+SAMPLE = "isprs/samp71-utm.laz"  # small (~15k points), sparse Vaihingen terrain
+
+
+@pytest.fixture(scope="module")
+def sim_bag(tmp_path_factory):
+    out = tmp_path_factory.mktemp("tools") / "flight"
+    run_cli("simulate", out, "--duration", "0.3", "--seed", "4", "--points", "10000")
+    return out
+
+
+def _count(bag, topic: str) -> int:
+    with BagReader(bag) as reader:
+        return reader.count([topic])
+
+
+def _rows(points: np.ndarray) -> set[tuple]:
+    return set(map(tuple, np.column_stack([points[n] for n in ("x", "y", "z")]).round(3)))
+
+
+def test_simplify_las_keeps_a_share_of_the_points_with_every_field(tmp_path):
+    src = data_file(SAMPLE)
+    out = tmp_path / "simple.laz"
+    summary = run_cli("simplify", src, out)
+    full, kept = read_las(src), read_las(out)
+    assert summary["points_out"] == len(kept.points) > 0
+    assert 0.5 < summary["reduction"] < 0.95, summary
+    assert kept.points.dtype == full.points.dtype and kept.epsg == full.epsg
+    assert _rows(kept.points) <= _rows(full.points)  # a subset, nothing moved
+    assert -1.0 <= summary["r"] <= 1.0
+    assert [p.name for p in tmp_path.iterdir()] == ["simple.laz"]  # no partial file left
+
+
+def test_simplify_paper_method_from_a_params_file(tmp_path):
+    src = data_file(SAMPLE)
+    params = tmp_path / "p.yaml"
+    params.write_text("cloud_simplifier:\n  ros__parameters:\n    simplify:\n"
+                      "      method: normal_cluster\n      restarts: 2\n")
+    summary = run_cli("simplify", src, tmp_path / "paper.las", "--params-file", params)
+    assert summary["method"] == "normal_cluster" and summary["k"] >= 1
+    assert summary["points_out"] == len(read_las(tmp_path / "paper.las").points)
+
+
+def test_simplify_and_features_of_a_bag(sim_bag, tmp_path):
+    s = run_cli("simplify", sim_bag, tmp_path / "simple")
+    f = run_cli("features", sim_bag, tmp_path / "feat")
+    inputs = clouds(sim_bag, "/points")
+    for summary, topic, bag in ((s, "/points_simplified", tmp_path / "simple"),
+                                (f, "/points_features", tmp_path / "feat")):
+        outs = clouds(bag, topic)
+        assert summary["messages"] == len(inputs) == len(outs) == 3
+        assert summary["points_out"] == sum(len(o) for o in outs)
+        for cin, cout in zip(inputs, outs):
+            assert cout.dtype.names == cin.dtype.names  # every field kept
+            assert _rows(cout) <= _rows(cin)
+        assert _count(bag, "/odom") == _count(sim_bag, "/odom") > 0  # copied along
+    assert 0 < s["points_out"] < s["points_in"]
+    assert 0 < f["points_out"] < f["points_in"]  # buildings and towers have edges
+
+
+def test_features_of_a_las_file(tmp_path):
+    src = data_file(SAMPLE)
+    summary = run_cli("features", src, tmp_path / "edges.laz")
+    kept, full = read_las(tmp_path / "edges.laz"), read_las(src)
+    assert summary["feature_points"] == len(kept.points)
+    assert 0.005 < summary["share"] < 0.6, summary
+    assert _rows(kept.points) <= _rows(full.points)
+
+
+def test_tiled_features_match_the_whole_cloud_inside_the_tiles():
+    """Tiles with a margin give each point the neighbours it has in the whole survey: boxes
+    across the 100 m tile borders get the same feature points as in one piece."""
+    from lidar_obstacles.config import FeaturesConfig
+    from lidar_obstacles.core.features import gaussian_map_features
+    from lidar_obstacles.ros import cloud_tools
+    from test_features import _box
+
+    rng = np.random.default_rng(1)
+    corners = [(0, 0), (98.5, 0), (0, 98.7), (98.6, 98.4), (150, 150), (199, 40)]
+    xyz = np.concatenate([_box(rng, noise=0.005)[0] + (x, y, 0) for x, y in corners])
+    cfg = FeaturesConfig()
+    whole = gaussian_map_features(xyz, cfg=cfg, rng=np.random.default_rng(0)).feature
+    tiled = cloud_tools.tiled_features(xyz, cfg=cfg, rng=np.random.default_rng(0))
+    assert whole.sum() > 100  # the boxes' edges and corners
+    assert (whole == tiled).mean() > 0.97, (whole == tiled).mean()
+
+
+@pytest.mark.parametrize("args, expected", [
+    (("simplify", "{src}", "{tmp}/out.bag"), "needs a .las or .laz output"),
+    (("features", "{tmp}/missing.laz", "{tmp}/out.laz"), "not found"),
+    (("simplify", "{tmp}/nobag", "{tmp}/out"), "nobag"),
+])
+def test_bad_input_is_one_line_and_exit_2(args, expected, tmp_path):
+    src = data_file(SAMPLE)
+    proc = cli_subprocess(*[a.format(src=src, tmp=tmp_path) for a in args])
+    assert proc.returncode == 2, proc.stderr
+    lines = [x for x in proc.stderr.splitlines() if x.strip()]
+    assert len(lines) == 1 and expected in lines[0], proc.stderr
+    assert not any(p.name.startswith(".out") for p in tmp_path.iterdir())
