@@ -12,8 +12,10 @@ from lidar_obstacles.core.features import FeatureResult, gaussian_map_features
 from lidar_obstacles.errors import CloudFormatError
 
 SPACING = 0.2  # m, of the synthetic surfaces (25 points / m^2)
-FAITHFUL = FeaturesConfig(method="faithful")
-FAST = FeaturesConfig(method="fast")
+# Three K-means runs per cluster count (the default is one): the tests judge the methods,
+# not one run's luck.
+FAITHFUL = FeaturesConfig(method="faithful", restarts=3)
+FAST = FeaturesConfig(method="fast", restarts=3)
 
 
 def _rectangle(origin, u, v, rng) -> np.ndarray:
