@@ -1,0 +1,57 @@
+"""Make docs/simplify_features.png: the AHN4 tile, its simplified cloud and the feature
+points of its buildings (what `lidar-obstacles simplify` and `features` give).
+
+    .venv/bin/python docs/figures.py
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from lidar_obstacles.config import FeaturesConfig, SimplifyConfig  # noqa: E402
+from lidar_obstacles.core.features import gaussian_map_features  # noqa: E402
+from lidar_obstacles.core.simplify import simplify  # noqa: E402
+from lidar_obstacles.io.las import read_las  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+DATA = HERE.parents[1] / "shared" / "data"
+
+
+def main() -> None:
+    las = read_las(DATA / "ahn4" / "ahn_2496_9727.laz")
+    xyz, pts = las.xyz, las.points
+    simple = simplify(xyz, cfg=SimplifyConfig(), return_number=pts["return_number"],
+                      rng=np.random.default_rng(0))
+    building = pts["classification"] == 6
+    edges = np.zeros(len(xyz), bool)
+    edges[building] = gaussian_map_features(xyz[building], cfg=FeaturesConfig(),
+                                            rng=np.random.default_rng(0)).feature
+    lo = xyz.min(axis=0)
+    fig, axes = plt.subplots(1, 3, figsize=(15, 5.4), constrained_layout=True)
+    views = [(np.ones(len(xyz), bool), f"AHN4 tile: {len(xyz):,} points"),
+             (simple.keep, f"simplify (normal_space): {simple.keep.sum():,} kept "
+                           f"({100 * simple.keep.mean():.0f} %)"),
+             (edges, f"features of the buildings: {edges.sum():,} of {building.sum():,} "
+                     f"points")]
+    for ax, (mask, title) in zip(axes, views):
+        if mask is edges:
+            ax.scatter(*(xyz[building][:, :2] - lo[:2]).T, s=0.3, c="0.85", lw=0)
+        sc = ax.scatter(*(xyz[mask][:, :2] - lo[:2]).T, s=0.6 if mask is edges else 0.3,
+                        c=xyz[mask, 2], cmap="viridis", lw=0)
+        ax.set_title(title, fontsize=10)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (m)")
+    axes[0].set_ylabel("y (m)")
+    fig.colorbar(sc, ax=axes, shrink=0.8, label="z (m)")
+    out = HERE / "simplify_features.png"
+    fig.savefig(out, dpi=110)
+    print(out)
+
+
+if __name__ == "__main__":
+    main()
