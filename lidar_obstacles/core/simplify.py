@@ -271,12 +271,12 @@ def voxel_sample(xyz: np.ndarray, count: int, rng: np.random.Generator) -> np.nd
         keep[rng.choice(n, count, replace=False)] = True
         return keep
     size = spacing * np.sqrt(n / count) if np.isfinite(spacing) else span / count
-    best: np.ndarray | None = None
+    best = _representatives(xyz, _voxel_keys(xyz, size))
     prev: tuple[float, int] | None = None
-    for _ in range(_SEARCH):
-        reps = _representatives(xyz, _voxel_keys(xyz, size))
+    for step in range(_SEARCH):
+        reps = best if step == 0 else _representatives(xyz, _voxel_keys(xyz, size))
         m = len(reps)
-        if best is None or abs(m - count) < abs(len(best) - count):
+        if abs(m - count) < abs(len(best) - count):
             best = reps
         if abs(m - count) <= 0.01 * count:
             break
@@ -286,7 +286,6 @@ def voxel_sample(xyz: np.ndarray, count: int, rng: np.random.Generator) -> np.nd
                                   / (np.log(size) - np.log(prev[0])), -3.0, -0.5))
         prev = (size, m)
         size *= float(np.exp((np.log(count) - np.log(m)) / slope))
-    assert best is not None
     if len(best) > count:
         best = rng.choice(best, count, replace=False)
     keep[best] = True
