@@ -60,6 +60,7 @@ from lidar_obstacles.core import kmeans as km_mod  # noqa: E402
 from lidar_obstacles.core.kmeans import elbow_kmeans, standardise  # noqa: E402
 from lidar_obstacles.io.geotiff import write_hillshade_png  # noqa: E402
 from lidar_obstacles.io.las import read_las  # noqa: E402
+from tables import table  # noqa: E402 (benchmarks/ is on the path)
 
 DATA = REPO.parent / "shared" / "data"
 OUT = REPO / "benchmarks" / "results"
@@ -457,17 +458,6 @@ def e2e_verdict(rows: list[dict]) -> list[dict]:
 
 
 # --------------------------------------------------------------------------- main
-
-
-def table(rows: list[dict], cols: list[str]) -> str:
-    def fmt(v):
-        if isinstance(v, float):
-            return f"{v:.4g}"
-        return str(v)
-
-    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    lines += ["| " + " | ".join(fmt(r.get(c, "")) for c in cols) + " |" for r in rows]
-    return "\n".join(lines)
 
 
 def main() -> int:

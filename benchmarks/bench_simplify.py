@@ -40,6 +40,7 @@ from lidar_obstacles.core.kmeans import kmeans  # noqa: E402
 from lidar_obstacles.core.simplify import (mean_spacing, normal_space_sample,  # noqa: E402
                                            simplify, tin_raster_correlation, voxel_sample)
 from lidar_obstacles.io.las import read_las  # noqa: E402
+from tables import table  # noqa: E402 (benchmarks/ is on the path)
 
 DATA = REPO.parent / "shared" / "data"
 OUT = REPO / "benchmarks" / "results"
@@ -140,17 +141,6 @@ def speed(cfgs: dict[str, SimplifyConfig], repeat: int) -> list[dict]:
         out.append(dict(config=name, clustered=int((res.labels >= 0).sum()), k=res.k,
                         r=res.r, **{f"{k}_ms": 1000 * v for k, v in best.items()}))
     return out
-
-
-def table(rows: list[dict], cols: list[str]) -> str:
-    def fmt(v):
-        if isinstance(v, float):
-            return f"{v:.4g}"
-        return str(v)
-
-    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    lines += ["| " + " | ".join(fmt(r.get(c, "")) for c in cols) + " |" for r in rows]
-    return "\n".join(lines)
 
 
 def main() -> int:

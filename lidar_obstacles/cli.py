@@ -78,25 +78,18 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--params-file", type=Path, default=None)
     s.add_argument("--crs", default=None, help="e.g. EPSG:32632 (default: from the bag)")
 
-    s = sub.add_parser("simplify", help="K-means++ simplification on normals of a LAS/LAZ "
-                       "file or a bag")
-    s.add_argument("src", type=Path, metavar="IN", help="a LAS/LAZ file or a bag")
-    s.add_argument("out", type=Path, metavar="OUT",
-                   help="a .las/.laz file for a LAS/LAZ input, a bag for a bag")
-    s.add_argument("--params-file", type=Path, default=None,
-                   help="ROS 2 params YAML (`cloud_simplifier`'s `simplify.*`)")
-    s.add_argument("--topic", default=None, help="PointCloud2 topic (default: the only/biggest)")
-    s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
-
-    s = sub.add_parser("features", help="Gaussian-map feature points of a LAS/LAZ file or "
-                       "a bag")
-    s.add_argument("src", type=Path, metavar="IN", help="a LAS/LAZ file or a bag")
-    s.add_argument("out", type=Path, metavar="OUT",
-                   help="a .las/.laz file for a LAS/LAZ input, a bag for a bag")
-    s.add_argument("--params-file", type=Path, default=None,
-                   help="ROS 2 params YAML (`obstacle_detector`'s `features.*`)")
-    s.add_argument("--topic", default=None, help="PointCloud2 topic (default: the only/biggest)")
-    s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    for name, what, params in (
+            ("simplify", "K-means++ simplification on normals", "`cloud_simplifier`'s `simplify.*`"),
+            ("features", "Gaussian-map feature points", "`obstacle_detector`'s `features.*`")):
+        s = sub.add_parser(name, help=f"{what} of a LAS/LAZ file or a bag")
+        s.add_argument("src", type=Path, metavar="IN", help="a LAS/LAZ file or a bag")
+        s.add_argument("out", type=Path, metavar="OUT",
+                       help="a .las/.laz file for a LAS/LAZ input, a bag for a bag")
+        s.add_argument("--params-file", type=Path, default=None,
+                       help=f"ROS 2 params YAML ({params})")
+        s.add_argument("--topic", default=None,
+                       help="PointCloud2 topic (default: the only/biggest)")
+        s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
 
     s = sub.add_parser("evaluate", help="compare the classes with the `classification` field")
     s.add_argument("src", type=Path, metavar="IN",

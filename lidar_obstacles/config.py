@@ -418,12 +418,18 @@ class ExportConfig:
 
 
 @dataclass(frozen=True)
-class ObstacleDetectorConfig:
+class NodeInputConfig:
+    """What every node shares: the input and the optional odometry transform."""
+
     use_odometry: bool = param(False, "transform sensor-frame clouds by the `odom` pose "
                                "nearest in time")
     odometry_max_age: float = param(0.2, "clouds without an odometry pose this close in "
                                     "time are dropped", "s", min=0.0, max=10.0)
     input: InputConfig = field(default_factory=InputConfig)
+
+
+@dataclass(frozen=True)
+class ObstacleDetectorConfig(NodeInputConfig):
     tiling: TilingConfig = field(default_factory=TilingConfig)
     ground: GroundConfig = field(default_factory=GroundConfig)
     tin: TinConfig = field(default_factory=TinConfig)
@@ -435,12 +441,7 @@ class ObstacleDetectorConfig:
 
 
 @dataclass(frozen=True)
-class DemBuilderConfig:
-    use_odometry: bool = param(False, "transform sensor-frame clouds by the `odom` pose "
-                               "nearest in time")
-    odometry_max_age: float = param(0.2, "clouds without an odometry pose this close in "
-                                    "time are dropped", "s", min=0.0, max=10.0)
-    input: InputConfig = field(default_factory=InputConfig)
+class DemBuilderConfig(NodeInputConfig):
     dem: DemConfig = field(default_factory=DemConfig)
     kmeans: KmeansConfig = field(default_factory=KmeansConfig)
     thinning: ThinningConfig = field(default_factory=ThinningConfig)
@@ -457,12 +458,7 @@ class DemBuilderConfig:
 
 
 @dataclass(frozen=True)
-class CloudSimplifierConfig:
-    use_odometry: bool = param(False, "transform sensor-frame clouds by the `odom` pose "
-                               "nearest in time")
-    odometry_max_age: float = param(0.2, "clouds without an odometry pose this close in "
-                                    "time are dropped", "s", min=0.0, max=10.0)
-    input: InputConfig = field(default_factory=InputConfig)
+class CloudSimplifierConfig(NodeInputConfig):
     simplify: SimplifyConfig = field(default_factory=SimplifyConfig)
 
 

@@ -11,7 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lidar_obstacles.config import CloudSimplifierConfig, DemBuilderConfig, ObstacleDetectorConfig
+from lidar_obstacles.config import (CloudSimplifierConfig, DemBuilderConfig, NodeInputConfig,
+                                    ObstacleDetectorConfig)
 from lidar_obstacles.core.arrays import all_columns
 from lidar_obstacles.core.pipeline import (DemPipeline, GroundStep, ObstacleDetector,
                                            ObstacleResult)
@@ -77,6 +78,13 @@ def prepare(msg, *, keep_non_finite: bool, max_points: int, pose: Pose | None,
     return Prepared(points, xyz, messages.stamp_ns_of(msg.header), frame)
 
 
+def prepare_for(msg, cfg: NodeInputConfig, pose: Pose | None) -> tuple[Prepared, np.ndarray]:
+    """`prepare` with a node's input settings, and which points are finite, (N,) bool."""
+    prep = prepare(msg, keep_non_finite=cfg.input.keep_non_finite,
+                   max_points=cfg.input.max_points, pose=pose, transform=cfg.use_odometry)
+    return prep, all_columns(np.isfinite(prep.xyz))
+
+
 @dataclass(frozen=True)
 class DetectorWork:
     """A cloud between `DetectorStage.start` and `finish`: its decoded points (1-D
@@ -123,10 +131,7 @@ class DetectorStage:
         and find its ground."""
         cfg = self.cfg
         t0 = time.perf_counter()
-        prep = prepare(msg, keep_non_finite=cfg.input.keep_non_finite,
-                       max_points=cfg.input.max_points, pose=pose,
-                       transform=cfg.use_odometry)
-        finite = all_columns(np.isfinite(prep.xyz))
+        prep, finite = prepare_for(msg, cfg, pose)
         step = self.pipeline.ground_step(
             prep.xyz[finite], stamp=prep.stamp_ns * 1e-9,
             vehicle_xyz=pose.position if pose is not None else None)
@@ -265,10 +270,7 @@ class SimplifierStage:
 
         cfg = self.cfg
         t0 = time.perf_counter()
-        prep = prepare(msg, keep_non_finite=cfg.input.keep_non_finite,
-                       max_points=cfg.input.max_points, pose=pose,
-                       transform=cfg.use_odometry)
-        finite = all_columns(np.isfinite(prep.xyz))
+        prep, finite = prepare_for(msg, cfg, pose)
         points = prep.points[finite]
         result = simplify(prep.xyz[finite], cfg=cfg.simplify,
                           intensity=_attr(points, "intensity"),
