@@ -493,7 +493,16 @@ def _neighbour_min(grid: np.ndarray, half: int) -> np.ndarray:
 
 
 class _Opening:
-    """Progressive morphological opening of (rows, cols) grids of one shape, work arrays kept."""
+    """Progressive morphological opening of (rows, cols) grids of one shape, work arrays kept.
+
+    Square windows, not SMRF's disks. A square fits a diagonal strip only up to 0.35 of its
+    width (a disk up to 0.5), so it cuts diagonal embankments that a disk leaves: measured
+    with disks (scipy footprints, every other setting as here) ISPRS samp61 kappa 0.769 ->
+    0.839, but the mean total error 3.52 -> 4.30 % and kappa 0.880 -> 0.865 (samp31 0.945
+    -> 0.850, samp21 0.956 -> 0.917: low objects flagged later, when slope x radius is
+    higher); with disks and slope 0.15 3.48 % / 0.8791, with octagons and slope 0.15
+    3.48 % / 0.8798, samp61 back to 0.756 / 0.777 either way. Not taken.
+    """
 
     def __init__(self, shape: tuple[int, int], max_radius: int) -> None:
         size = (shape[0] + 2 * max_radius) * (shape[1] + 2 * max_radius)
