@@ -183,6 +183,10 @@ def test_runtime_parameters_and_malformed_clouds(ros_node):
         ro = _call(ros_node, SetParameters, srv, SetParameters.Request(
             parameters=[_param("input.depth", 5)]))
         assert not ro.results[0].successful
+        edges = _call(ros_node, SetParameters, srv, SetParameters.Request(
+            parameters=[_param("features.enabled", True), _param("features.neighbours", 99)]))
+        assert edges.results[0].successful and not edges.results[1].successful
+        assert "features.neighbours" in edges.results[1].reason
         # A malformed cloud: data shorter than row_step * height.
         pub = ros_node.create_publisher(PointCloud2, f"{NS}/points",
                                         QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
