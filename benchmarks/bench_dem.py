@@ -38,7 +38,6 @@ Writes benchmarks/results/dem.json and dem_*.png (hillshades, elbow curve).
 """
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import sys
@@ -60,7 +59,7 @@ from lidar_obstacles.core import kmeans as km_mod  # noqa: E402
 from lidar_obstacles.core.kmeans import elbow_kmeans, standardise  # noqa: E402
 from lidar_obstacles.io.geotiff import write_hillshade_png  # noqa: E402
 from lidar_obstacles.io.las import read_las  # noqa: E402
-from tables import table  # noqa: E402 (benchmarks/ is on the path)
+from common import quick_args, table  # noqa: E402 (benchmarks/ is on the path)
 
 DATA = REPO.parent / "shared" / "data"
 OUT = REPO / "benchmarks" / "results"
@@ -461,9 +460,7 @@ def e2e_verdict(rows: list[dict]) -> list[dict]:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="fewer files and repeats")
-    args = parser.parse_args()
+    args = quick_args(__doc__, "fewer files and repeats")
     OUT.mkdir(parents=True, exist_ok=True)
     cfg = DemBuilderConfig()
     quick = args.quick

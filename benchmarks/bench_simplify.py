@@ -20,7 +20,6 @@ Writes benchmarks/results/simplify.json.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import sys
@@ -40,7 +39,7 @@ from lidar_obstacles.core.kmeans import kmeans  # noqa: E402
 from lidar_obstacles.core.simplify import (mean_spacing, normal_space_sample,  # noqa: E402
                                            simplify, tin_raster_correlation, voxel_sample)
 from lidar_obstacles.io.las import read_las  # noqa: E402
-from tables import table  # noqa: E402 (benchmarks/ is on the path)
+from common import quick_args, table  # noqa: E402 (benchmarks/ is on the path)
 
 DATA = REPO.parent / "shared" / "data"
 OUT = REPO / "benchmarks" / "results"
@@ -144,9 +143,7 @@ def speed(cfgs: dict[str, SimplifyConfig], repeat: int) -> list[dict]:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="fewer files, 10 restarts")
-    args = parser.parse_args()
+    args = quick_args(__doc__, "fewer files, 10 restarts")
     OUT.mkdir(parents=True, exist_ok=True)
     quick = args.quick
     cfg = SimplifyConfig()

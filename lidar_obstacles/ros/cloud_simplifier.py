@@ -6,7 +6,7 @@ from sensor_msgs.msg import PointCloud2
 
 from lidar_obstacles.config import CloudSimplifierConfig
 from lidar_obstacles.ros.node_base import PipelineNode, output_qos, run_node
-from lidar_obstacles.ros.stages import Pose, SimplifierStage
+from lidar_obstacles.ros.stages import SimplifierStage
 
 
 class CloudSimplifierNode(PipelineNode):
@@ -15,17 +15,9 @@ class CloudSimplifierNode(PipelineNode):
     def __init__(self) -> None:
         super().__init__("cloud_simplifier")
         self.stage = SimplifierStage(self.cfg)
-        self.pub = self.create_publisher(PointCloud2, "points_simplified", output_qos())
+        self.pubs = {"points_simplified": self.create_publisher(PointCloud2, "points_simplified",
+                                                                output_qos())}
         self.get_logger().info("ready")
-
-    def reconfigure(self, cfg: CloudSimplifierConfig) -> None:
-        self.stage.reconfigure(cfg)
-
-    def process_cloud(self, msg: PointCloud2, pose: Pose | None) -> int:
-        outputs, stats = self.stage.process(msg, pose)
-        for _, out in outputs:
-            self.pub.publish(out)
-        return stats["points_out"]
 
 
 def main(args: list[str] | None = None) -> int:

@@ -72,10 +72,12 @@ class PoseBuffer:
 class PipelineNode(Node):
     """Base of `obstacle_detector`, `dem_builder` and `cloud_simplifier`.
 
-    Subclasses give the config class, make their stage and implement `process_cloud(msg, pose)`.
+    Subclasses give the config class, make their stage (`self.stage`) and its publishers
+    (`self.pubs`, by topic).
     """
 
     config_cls: type
+    out_key: str = "points_out"  # the stage's stats entry counted as points out
 
     def __init__(self, name: str) -> None:
         super().__init__(name)
@@ -103,7 +105,8 @@ class PipelineNode(Node):
         self.reconfigure(cfg)
 
     def reconfigure(self, cfg: Any) -> None:
-        """Subclasses pass new parameters to their stage (takes effect on the next cloud)."""
+        """New parameters go to the stage (`self.stage`), for the next cloud."""
+        self.stage.reconfigure(cfg)
 
     # ---------------------------------------------------------------- input QoS
     def _wanted_reliability(self) -> ReliabilityPolicy:
@@ -152,7 +155,13 @@ class PipelineNode(Node):
         self.stats["points_out"] += int(n_out)
 
     def process_cloud(self, msg: PointCloud2, pose: Pose | None) -> int:
-        raise NotImplementedError
+        """Run the stage on one cloud and publish what it returns, each message on
+        `self.pubs[topic]`; the points out (the stats' `out_key`) go to the diagnostics.
+        Stages that publish on their own schedule (the DEM) override this."""
+        outputs, stats = self.stage.process(msg, pose)
+        for topic, out in outputs:
+            self.pubs[topic].publish(out)
+        return stats[self.out_key]
 
     def _reject(self, reason: str, counter: str = "rejected") -> None:
         self.stats[counter] += 1

@@ -8,11 +8,12 @@ from visualization_msgs.msg import MarkerArray
 
 from lidar_obstacles.config import ObstacleDetectorConfig
 from lidar_obstacles.ros.node_base import PipelineNode, output_qos, run_node
-from lidar_obstacles.ros.stages import DetectorStage, Pose
+from lidar_obstacles.ros.stages import DetectorStage
 
 
 class ObstacleDetectorNode(PipelineNode):
     config_cls = ObstacleDetectorConfig
+    out_key = "obstacles"
 
     def __init__(self) -> None:
         super().__init__("obstacle_detector")
@@ -27,15 +28,6 @@ class ObstacleDetectorNode(PipelineNode):
             "obstacle_edges": self.create_publisher(PointCloud2, "obstacle_edges", qos),
         }
         self.get_logger().info("ready")
-
-    def reconfigure(self, cfg: ObstacleDetectorConfig) -> None:
-        self.stage.reconfigure(cfg)
-
-    def process_cloud(self, msg: PointCloud2, pose: Pose | None) -> int:
-        outputs, stats = self.stage.process(msg, pose)
-        for topic, out in outputs:
-            self.pubs[topic].publish(out)
-        return stats["obstacles"]
 
 
 def main(args: list[str] | None = None) -> int:

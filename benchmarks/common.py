@@ -1,6 +1,8 @@
-"""Markdown tables for the benchmark scripts (they run as scripts, so this folder is on
-their import path)."""
+"""What the benchmark scripts share: the --quick option and Markdown tables (they run as
+scripts, so this folder is on their import path)."""
 from __future__ import annotations
+
+import argparse
 
 
 def table(rows: list[dict], cols: list[str]) -> str:
@@ -14,3 +16,10 @@ def table(rows: list[dict], cols: list[str]) -> str:
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     lines += ["| " + " | ".join(fmt(r.get(c, "")) for c in cols) + " |" for r in rows]
     return "\n".join(lines)
+
+
+def quick_args(doc: str | None, quick_help: str) -> argparse.Namespace:
+    """The command line of a benchmark: its docstring's first line, and --quick."""
+    parser = argparse.ArgumentParser(description=(doc or "").splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help=quick_help)
+    return parser.parse_args()
