@@ -45,6 +45,25 @@ def row_norm(a: np.ndarray) -> np.ndarray:
     return np.sqrt(total)
 
 
+def unique_ints(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """np.unique(keys, return_inverse=True) of (N,) non-negative integer keys: (U,) the
+    sorted distinct keys and (N,) the index of each key among them.
+
+    Keys of a small grid (at most 2 x N cells, such as a message's 2 m cells) are counted
+    in a table, not sorted: 8 x faster for 30 000 points in 5 000 cells. A fresh table much
+    larger than N costs more in page faults than the sort saves."""
+    if len(keys) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    size = int(keys.max()) + 1
+    if size > 2 * len(keys):
+        distinct, inverse = np.unique(keys, return_inverse=True)
+        return distinct, inverse.ravel()
+    present = np.flatnonzero(np.bincount(keys, minlength=size))
+    rank = np.zeros(size, np.int64)
+    rank[present] = np.arange(len(present))
+    return present, rank[keys]
+
+
 def single_threaded_blas() -> None:
     """Run BLAS on one thread in this process (the nodes and the CLI call it at start).
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from lidar_obstacles.config import ContextConfig
-from lidar_obstacles.core.arrays import column_min
+from lidar_obstacles.core.arrays import column_min, unique_ints
 
 
 # Cells are kept under one int64 key: (i + OFFSET) * SPAN + (j + OFFSET). Sorting and
@@ -19,13 +19,6 @@ from lidar_obstacles.core.arrays import column_min
 # from ~4.7 to ~1 ms per 50 000-point message).
 _OFFSET = 1 << 30  # cells: +-1e9 cells either side of the frame's origin
 _SPAN = 1 << 31
-
-
-def _cell_keys(xy: np.ndarray, cell: float) -> np.ndarray:
-    """(N,) int64 key of the `cell` m cell of each point xy (N, 2) m."""
-    i = np.floor(xy[:, 0] / cell).astype(np.int64) + _OFFSET
-    j = np.floor(xy[:, 1] / cell).astype(np.int64) + _OFFSET
-    return i * _SPAN + j
 
 
 def _cell_centres(keys: np.ndarray, cell: float) -> np.ndarray:
@@ -77,12 +70,17 @@ class GroundContext:
         if len(ground_xyz):
             # The newest stamp wins a cell, with the lowest height of its message (ground
             # is low); cells this message did not see are kept.
-            new = _cell_keys(ground_xyz[:, :2], c)
-            order = np.lexsort((ground_xyz[:, 2], new))
-            new = new[order]
-            first = np.ones(len(new), bool)
-            first[1:] = new[1:] != new[:-1]
-            new_key, new_z = new[first], ground_xyz[order[first], 2]
+            # Lowest height per cell on the message's own small grid (a table, not a sort
+            # of its points: ~1 ms less per 50 000-point message); local cells are
+            # numbered i-major like the keys, so new_key comes out sorted.
+            i = np.floor(ground_xyz[:, 0] / c).astype(np.int64)
+            j = np.floor(ground_xyz[:, 1] / c).astype(np.int64)
+            i0, j0 = int(i.min()), int(j.min())
+            width = int(j.max()) - j0 + 1
+            cells, inverse = unique_ints((i - i0) * width + (j - j0))
+            new_z = np.full(len(cells), np.inf)
+            np.minimum.at(new_z, inverse, ground_xyz[:, 2])
+            new_key = (cells // width + i0 + _OFFSET) * _SPAN + (cells % width + j0 + _OFFSET)
             pos = np.minimum(np.searchsorted(new_key, key), len(new_key) - 1)
             old = new_key[pos] != key
             newer = ~old & (t > stamp)  # a message out of order loses to what came later

@@ -22,7 +22,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from lidar_obstacles.config import DemBuilderConfig, KrigingConfig, ThinningConfig
-from lidar_obstacles.core.arrays import column_min
+from lidar_obstacles.core.arrays import column_min, unique_ints
 from lidar_obstacles.core.interpolate import (Variogram, degeneracy, interpolate,
                                               kriging_variogram, merge_coincident)
 from lidar_obstacles.core.kmeans import kmeans_ground
@@ -178,7 +178,8 @@ _PATCH_NEIGHBOURS = 16
 def _point_spacing(x: np.ndarray, y: np.ndarray) -> float:
     """Mean point spacing (m) of points x, y (N,) metres from their lower corner: sqrt(area
     of the occupied 4 m cells / N)."""
-    ix, iy = (x // 4.0).astype(np.int64), (y // 4.0).astype(np.int64)
+    # (np.floor(x / c) rather than x // c: numpy's float floor_divide is 2.5 x slower)
+    ix, iy = np.floor(x / 4.0).astype(np.int64), np.floor(y / 4.0).astype(np.int64)
     occupied = np.count_nonzero(np.bincount(iy * (int(ix.max()) + 1) + ix))
     return float(np.sqrt(occupied * 16.0 / len(x)))
 
@@ -206,7 +207,7 @@ def band_allowance(xyz: np.ndarray, height_above_ground: np.ndarray) -> np.ndarr
     spacing = _point_spacing(x, y)
     cell = max(_PATCH_MIN_CELL, _PATCH_SPACINGS * spacing)
     # a spare row and column on each side: the shifted views below never wrap
-    ix, iy = (x // cell).astype(np.int64) + 1, (y // cell).astype(np.int64) + 1
+    ix, iy = np.floor(x / cell).astype(np.int64) + 1, np.floor(y / cell).astype(np.int64) + 1
     shape = (int(iy.max()) + 2, int(ix.max()) + 2)
     flat = iy * shape[1] + ix
     total = np.bincount(flat, weights=surface[ok], minlength=shape[0] * shape[1])
@@ -250,10 +251,9 @@ def ground_blunders(xyz: np.ndarray, *, max_area: float, rise: float,
     lo = column_min(xyz[:, :2])
     x, y = xyz[:, 0] - lo[0], xyz[:, 1] - lo[1]
     cell = max(_PATCH_MIN_CELL, _PATCH_SPACINGS * _point_spacing(x, y))
-    ix, iy = (x // cell).astype(np.int64), (y // cell).astype(np.int64)
+    ix, iy = np.floor(x / cell).astype(np.int64), np.floor(y / cell).astype(np.int64)
     cols = int(ix.max()) + 3  # a spare column on each side: offsets never wrap
-    cells, inverse = np.unique((iy + 1) * cols + ix + 1, return_inverse=True)
-    inverse = inverse.ravel()
+    cells, inverse = unique_ints((iy + 1) * cols + ix + 1)
     zmin = np.full(len(cells), np.inf)
     np.minimum.at(zmin, inverse, xyz[:, 2])
     u = len(cells)
@@ -388,24 +388,31 @@ class _Cells:
         self.fill[dst] = old[2][src]
 
     def add(self, xyz: np.ndarray) -> tuple[slice, slice] | None:
-        """Accumulate points; return the (rows, cols) bounding slices of touched cells."""
-        gij = np.floor(xyz[:, :2] / self.res).astype(np.int64)
-        local = gij - self.origin_ij
+        """Accumulate points xyz (N, 3) float64 metres; return the (rows, cols) bounding
+        slices of the touched cells (None when no point falls in the window).
+
+        Counted by one bincount over the touched cells' bounding box: a message covers a
+        small part of the window, and sorting its points (np.unique) cost 4 x as much."""
         rows, cols = self.shape
-        ok = (local[:, 0] >= 0) & (local[:, 0] < cols) & (local[:, 1] >= 0) & (local[:, 1] < rows)
-        if not ok.any():
-            return None
-        local, pts = local[ok], xyz[ok]
-        flat = local[:, 1] * cols + local[:, 0]
-        cells, inv = np.unique(flat, return_inverse=True)
-        inv = inv.ravel()
-        centre = (gij[ok] + 0.5) * self.res
-        r, c = np.divmod(cells, cols)
-        self.count[r, c] += np.bincount(inv).astype(np.uint32)
-        for layer, values in enumerate((pts[:, 2], pts[:, 0] - centre[:, 0],
-                                        pts[:, 1] - centre[:, 1])):
-            self.sums[layer, r, c] += np.bincount(inv, weights=values)
-        return slice(int(r.min()), int(r.max()) + 1), slice(int(c.min()), int(c.max()) + 1)
+        # global cell index first, then local: the offsets below are from the same centres
+        gc = np.floor(xyz[:, 0] / self.res).astype(np.int64)
+        gr = np.floor(xyz[:, 1] / self.res).astype(np.int64)
+        c, r = gc - self.origin_ij[0], gr - self.origin_ij[1]
+        ok = (c >= 0) & (c < cols) & (r >= 0) & (r < rows)
+        if not ok.all():
+            if not ok.any():
+                return None
+            xyz, gc, gr, c, r = xyz[ok], gc[ok], gr[ok], c[ok], r[ok]
+        r0, r1, c0, c1 = int(r.min()), int(r.max()) + 1, int(c.min()), int(c.max()) + 1
+        box = (r - r0) * (c1 - c0) + (c - c0)
+        size, region = (r1 - r0) * (c1 - c0), (slice(r0, r1), slice(c0, c1))
+        self.count[region] += np.bincount(box, minlength=size).reshape(
+            r1 - r0, c1 - c0).astype(np.uint32)
+        for layer, values in enumerate((xyz[:, 2], xyz[:, 0] - (gc + 0.5) * self.res,
+                                        xyz[:, 1] - (gr + 0.5) * self.res)):
+            self.sums[(layer,) + region] += np.bincount(box, weights=values,
+                                                        minlength=size).reshape(r1 - r0, c1 - c0)
+        return region
 
     def refill(self, region: tuple[slice, slice], *, cfg: DemBuilderConfig,
                variograms: _VariogramCache | None = None) -> None:

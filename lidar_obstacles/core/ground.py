@@ -577,16 +577,33 @@ class Bilinear:
 
     def __init__(self, shape: tuple[int, int], origin: np.ndarray, cell: float,
                  xy: np.ndarray) -> None:
-        f = (xy - origin) / cell - 0.5
+        # One column at a time and in place: ~2 x faster than on (M, 2) arrays with
+        # temporaries, which cost ~1 ms per 50 000-point message.
         h, w = shape
-        x = np.clip(f[:, 0], 0, w - 1)
-        y = np.clip(f[:, 1], 0, h - 1)
-        x0 = np.minimum(np.floor(x).astype(np.int64), max(w - 2, 0))
-        y0 = np.minimum(np.floor(y).astype(np.int64), max(h - 2, 0))
-        x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-        fx, fy = x - x0, y - y0
-        self.idx = np.stack([y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1])
-        self.wts = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy])
+        x = (xy[:, 0] - origin[0]) / cell - 0.5
+        y = (xy[:, 1] - origin[1]) / cell - 0.5
+        np.clip(x, 0, w - 1, out=x)
+        np.clip(y, 0, h - 1, out=y)
+        x0, y0 = x.astype(np.int64), y.astype(np.int64)  # >= 0: truncation is floor
+        np.minimum(x0, max(w - 2, 0), out=x0)
+        np.minimum(y0, max(h - 2, 0), out=y0)
+        x -= x0  # the fractions
+        y -= y0
+        idx = np.empty((4, len(x)), np.int64)  # corners (x0, y0), (x1, y0), (x0, y1), (x1, y1)
+        np.multiply(y0, w, out=idx[0])
+        idx[0] += x0
+        right, up = int(w > 1), w if h > 1 else 0  # a strip one cell wide has one corner
+        np.add(idx[0], right, out=idx[1])
+        np.add(idx[0], up, out=idx[2])
+        np.add(idx[2], right, out=idx[3])
+        wts = np.empty((4, len(x)))
+        np.subtract(1.0, x, out=wts[1])
+        np.subtract(1.0, y, out=wts[2])
+        np.multiply(wts[1], wts[2], out=wts[0])  # (1 - fx)(1 - fy)
+        np.multiply(wts[1], y, out=wts[2])  # (1 - fx) fy
+        np.multiply(x, 1.0 - y, out=wts[1])  # fx (1 - fy)
+        np.multiply(x, y, out=wts[3])  # fx fy
+        self.idx, self.wts = idx, wts
         self._corners = np.empty(self.wts.shape)
 
     def __call__(self, grid: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
