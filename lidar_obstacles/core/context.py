@@ -111,10 +111,11 @@ def _inside(xy: np.ndarray, cloud_xy: np.ndarray, cell: float, margin: float) ->
     from scipy import ndimage
 
     lo = column_min(cloud_xy) - cell
-    ij = np.floor((cloud_xy - lo) / cell).astype(np.int64)
-    occupied = np.zeros((int(ij[:, 1].max()) + 2, int(ij[:, 0].max()) + 2), bool)
-    occupied[ij[:, 1], ij[:, 0]] = True
+    # one column at a time: (M, 2) temporaries cost ~2 x as much (~1 ms per message)
+    col, row = (np.floor((cloud_xy[:, a] - lo[a]) / cell).astype(np.int64) for a in (0, 1))
+    occupied = np.zeros((int(row.max()) + 2, int(col.max()) + 2), bool)
+    occupied[row, col] = True
     depth = ndimage.distance_transform_edt(occupied) * cell
-    pij = np.clip(np.floor((xy - lo) / cell).astype(np.int64), 0,
-                  np.array(occupied.shape[::-1]) - 1)
-    return depth[pij[:, 1], pij[:, 0]] >= margin
+    col, row = (np.clip(np.floor((xy[:, a] - lo[a]) / cell).astype(np.int64), 0,
+                        occupied.shape[1 - a] - 1) for a in (0, 1))
+    return depth[row, col] >= margin

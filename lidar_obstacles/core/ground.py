@@ -942,9 +942,9 @@ def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
     allp = pts if fixed is None else np.concatenate([pts, fixed])
     n = len(pts)
     origin = np.array([allp[:, 0].min(), allp[:, 1].min()])  # (axis-0 reductions are slow)
-    ij = np.floor((allp[:, :2] - origin) / c).astype(np.int64)
-    shape = (int(ij[:, 1].max()) + 1, int(ij[:, 0].max()) + 1)  # rows = y, cols = x
-    flat = ij[:, 1] * shape[1] + ij[:, 0]
+    col, row = (np.floor((allp[:, a] - origin[a]) / c).astype(np.int64) for a in (0, 1))
+    shape = (int(row.max()) + 1, int(col.max()) + 1)  # rows = y, cols = x
+    flat = row * shape[1] + col
     z = np.ascontiguousarray(allp[:, 2])
     zmin = _grid_min(flat, z, shape)
     # Low blunders: a point far below the lowest point of the cells around its own. (A

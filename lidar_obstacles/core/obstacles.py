@@ -698,13 +698,14 @@ def clearance_grid(xyz: np.ndarray, classes: np.ndarray, height_above_ground: np
     side = max(1, int(round(cfg.size / res)))
     origin = np.floor((np.asarray(center_xy, float) - cfg.size / 2) / res) * res
     cells = np.full((side, side), -1, np.int8)
-    ij = np.floor((xyz[:, :2] - origin) / res).astype(np.int64)
-    inside = all_columns((ij >= 0) & (ij < side)) & all_columns(np.isfinite(xyz))
+    # one column at a time (no (N, 2) temporaries); a NaN x or y compares false: outside
+    col, row = ((xyz[:, a] - origin[a]) / res for a in (0, 1))
+    inside = (col >= 0) & (col < side) & (row >= 0) & (row < side) & np.isfinite(xyz[:, 2])
     if not inside.any():
         return cells, origin, res
-    ij = ij[inside]
-    flat = ij[:, 1] * side + ij[:, 0]
-    obstacle = ~np.isin(classes[inside], (GROUND, NOISE))
+    flat = row[inside].astype(np.int64) * side + col[inside].astype(np.int64)  # >= 0: floor
+    cls = classes[inside]
+    obstacle = (cls != GROUND) & (cls != NOISE)
     h = np.where(obstacle, np.nan_to_num(height_above_ground[inside].astype(float), nan=0.0), 0.0)
     top = np.full(side * side, -1.0)
     np.maximum.at(top, flat, np.maximum(h, 0.0))
