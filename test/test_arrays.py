@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from lidar_obstacles.core.arrays import (all_columns, column_max, column_mean, column_min,
-                                         release_free_memory, row_norm, single_threaded_blas)
+                                         release_free_memory, row_norm, single_threaded_blas,
+                                         unique_ints)
 
 
 @pytest.mark.parametrize("shape", [(1, 3), (7, 2), (5000, 3)])
@@ -19,6 +20,17 @@ def test_reductions_match_numpy(shape):
     mask = rng.random(shape) > 0.3
     assert np.array_equal(all_columns(mask), mask.all(axis=1))
     assert np.allclose(row_norm(a), np.linalg.norm(a, axis=1))
+
+
+@pytest.mark.parametrize("n, cells", [(0, 1), (1, 1), (30000, 5000), (5000, 10**12)])
+def test_unique_ints_matches_numpy_on_small_and_large_grids(n, cells):
+    # a small grid goes through the table, a large one through np.unique: same answer
+    keys = np.random.default_rng(2).integers(0, cells, n)
+    distinct, inverse = unique_ints(keys)
+    expected, expected_inverse = np.unique(keys, return_inverse=True)
+    assert np.array_equal(distinct, expected)
+    assert np.array_equal(inverse, expected_inverse.ravel())
+    assert np.array_equal(distinct[inverse], keys)
 
 
 def test_all_columns_does_not_modify_its_input():
