@@ -287,21 +287,10 @@ def kmeans_speed(n: int, cfg: KmeansConfig, anchor: bool) -> dict:
         sse, sec = timed(sk)
         res.update(sklearn_seconds=sec, sklearn_sse=sse, speedup=sec / ours,
                    sse_ratio_vs_sklearn=[a / b if b else 1.0 for a, b in zip(elbow.sse, sse)])
-    try:
-        import matplotlib
+    from lidar_obstacles.report import elbow_png
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(figsize=(4, 3))
-        ax.plot(range(1, len(elbow.sse) + 1), elbow.sse, "o-")
-        ax.axvline(elbow.k, color="r", ls="--")
-        ax.set(xlabel="k", ylabel="SSE", yscale="log", title="AHN4 intensity elbow")
-        fig.tight_layout()
-        fig.savefig(OUT / "dem_elbow.png", dpi=100)
-        plt.close(fig)
-    except ImportError:
-        pass
+    elbow_png(range(1, len(elbow.sse) + 1), elbow.sse, elbow.k, OUT / "dem_elbow.png",
+              title="AHN4 intensity elbow")
     return res
 
 

@@ -66,11 +66,18 @@ class InputConfig:
                        "p50/p95 116/190 ms at 10 Hz on 2 cores, 208/302 ms with depth 2); "
                        "raise it to process every cloud when the machine keeps up",
                        "messages", min=1, max=100, read_only=True)
-    keep_non_finite: bool = param(
-        False, "keep points with NaN/Inf coordinates (they are never classified); "
-        "false drops them")
     max_points: int = param(2_000_000, "messages with more points are rejected", "points",
                             min=1, max=50_000_000)
+
+
+@dataclass(frozen=True)
+class CloudInputConfig(InputConfig):
+    """The input of a node that publishes the points it got (the DEM has no use for a
+    point without coordinates)."""
+
+    keep_non_finite: bool = param(
+        False, "keep points with NaN/Inf coordinates in the output clouds (never "
+        "classified: noise, 7); false drops them")
 
 
 @dataclass(frozen=True)
@@ -215,13 +222,13 @@ class FeaturesConfig:
     restarts: int = param(1, "K-means++ runs per cluster count and point, the lowest cost "
                           "kept; 3 runs change 3 % of the decisions on AHN4 roofs (10 000 "
                           "building points, `fast`: 19.8 % feature points against 18.9 %) "
-                          "at twice the time (2.0 s against 0.97 s)", min=1, max=100)
+                          "at twice the time", min=1, max=100)
     seed: int = param(0, "random seed", min=0, max=2**31 - 1)
     method: str = param(
         "fast", "`faithful` the paper's: every point's triangle normals clustered, float64; "
         "`fast` float32 and points flat by PCA (l3/l2 < 0.05) taken as planes without "
-        "clustering: 1.4-2.7 x faster on real scans (AHN4 roofs 8.3 -> 3.1 s per 10 000 "
-        "points) and far fewer false features on noisy flat faces (precision 0.99 against "
+        "clustering: 1.4-2.7 x faster on real scans (AHN4 buildings 3.5-4.0 -> 1.2-1.3 s "
+        "per 10 000 points) and far fewer false features on noisy flat faces (precision 0.99 against "
         "0.38 on a box with 2 cm noise)",
         choices=("faithful", "fast"))
     reference: str = param(
@@ -286,7 +293,7 @@ class DemConfig:
                                "DEM: its acceptance band (0.5 m and more on slopes) keeps low "
                                "vegetation off the obstacle list, but a DEM wants bare earth "
                                "(AHN4 end-to-end RMSE, kriging, 0.26 m with all of it, 0.09 m with 0.15; "
-                               "0: all of it)", "m", min=0.0, max=5.0, tunable=True)
+                               "0: all of it)", "m", min=0.0, max=5.0)
     band_slope: float = param(
         0.5, "`ground_band` widens by this x the point spacing x the slope of the "
         "detector's surface: between sparse points on steep ground that surface is "
@@ -294,29 +301,29 @@ class DemConfig:
         "2.01 -> 1.50 m, samp52 0.64 -> 0.50 m, but low vegetation on slopes comes in: "
         "samp51 0.21 -> 0.31 m; ISPRS mean 0.69 -> 0.66 m; on dense scans (AHN) a few cm "
         "and no change; 0: a fixed band)",
-        "", min=0.0, max=10.0, tunable=True)
+        "", min=0.0, max=10.0)
     patch_area: float = param(
         400.0, "with the `detector` source, ground patches cut off from the main ground "
         "surface by a step all around and at most this large are left out of the DEM when "
         "they stand `patch_rise` above or `patch_sink` below the ground beside them: tree "
         "crowns and roofs taken for ground, clusters of low blunders (end-to-end RMSE, "
         "kriging: AHN corridor 07CZ2 0.32 -> 0.02 m, 12AN2 0.16 -> 0.05 m, ISPRS samp41 "
-        "3.8 -> 1.0 m; 0: keep them)", "m^2", min=0.0, max=100000.0, tunable=True)
+        "3.8 -> 1.0 m; 0: keep them)", "m^2", min=0.0, max=100000.0)
     patch_rise: float = param(
         1.0, "a ground patch more than this above the ground beside it is dropped (see "
-        "`patch_area`)", "m", min=0.1, max=100.0, tunable=True)
+        "`patch_area`)", "m", min=0.1, max=100.0)
     patch_sink: float = param(
         10.0, "a ground patch more than this below the ground beside it is dropped (see "
         "`patch_area`); deep, because real pits hold ground too (a 5-6 m deep underpass on "
         "ISPRS samp24), while low blunders lie 25-35 m down (samp41, samp12)", "m",
-        min=0.1, max=1000.0, tunable=True)
+        min=0.1, max=1000.0)
     interpolation: str = param(
         "kriging", "interpolator filling the grid: `tin` Delaunay linear, `idw` inverse "
         "distance, `kriging` local ordinary kriging (the paper's, and the most accurate at "
         "held-out points of the real data, benchmarks/bench_dem.py; but it spreads a wrong "
         "ground patch further than `tin`, which keeps it local), `rbf` local thin-plate "
         "spline, `rbfnn` the paper's RBF network",
-        choices=("tin", "idw", "kriging", "rbf", "rbfnn"), tunable=True)
+        choices=("tin", "idw", "kriging", "rbf", "rbfnn"))
     resolution: float = param(1.0, "cell edge of the DEM grid", "m", min=0.05, max=100.0)
     extent: float = param(200.0, "the rolling DEM keeps this square around the vehicle "
                           "(0: the whole flight up to `max_cells`)", "m", min=0.0,
@@ -430,6 +437,7 @@ class NodeInputConfig:
 
 @dataclass(frozen=True)
 class ObstacleDetectorConfig(NodeInputConfig):
+    input: CloudInputConfig = field(default_factory=CloudInputConfig)
     tiling: TilingConfig = field(default_factory=TilingConfig)
     ground: GroundConfig = field(default_factory=GroundConfig)
     tin: TinConfig = field(default_factory=TinConfig)
@@ -459,6 +467,7 @@ class DemBuilderConfig(NodeInputConfig):
 
 @dataclass(frozen=True)
 class CloudSimplifierConfig(NodeInputConfig):
+    input: CloudInputConfig = field(default_factory=CloudInputConfig)
     simplify: SimplifyConfig = field(default_factory=SimplifyConfig)
 
 

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
+from lidar_obstacles.config import DemBuilderConfig, NodeInputConfig, ObstacleDetectorConfig
 from lidar_obstacles.errors import BagError, CloudFormatError
 
 LAS_SUFFIXES = (".las", ".laz")
@@ -61,8 +61,16 @@ def _from_points(points: np.ndarray, stamp: float) -> LabelledCloud:
                          pred)
 
 
-def load_input(path: str | Path, *, topic: str | None = None) -> LabelledInput:
-    """Read a labelled LAS/LAZ file or bag. LasError/BagError/CloudFormatError when unusable."""
+def load_input(path: str | Path, *, topic: str | None = None,
+               cfg: NodeInputConfig | None = None) -> LabelledInput:
+    """Read a labelled LAS/LAZ file or bag. LasError/BagError/CloudFormatError when unusable.
+
+    A labelled bag's clouds are read as the detector would take them (``cfg``, default
+    ObstacleDetectorConfig()): with `use_odometry`, moved into the odometry frame by the
+    pose nearest in time (a cloud with none within `odometry_max_age` is skipped, as the
+    node drops it); with an odometry topic, the vehicle's position comes with each cloud
+    (the clearance grid is centred on it)."""
+    cfg = cfg if cfg is not None else ObstacleDetectorConfig()
     path = Path(path)
     if path.suffix.lower() in LAS_SUFFIXES:
         from lidar_obstacles.io.las import read_las
@@ -87,19 +95,45 @@ def load_input(path: str | Path, *, topic: str | None = None) -> LabelledInput:
                 raise CloudFormatError(f"{path}: /obstacles has no 'class' field")
             kind = "replay_bag"
         else:
-            cloud_topic = reader.pointcloud_topic(topic)
-            clouds = []
-            for rec in reader.records([cloud_topic]):
-                msg = reader.deserialize(rec)
-                stamp = int(msg.header.stamp.sec) + int(msg.header.stamp.nanosec) * 1e-9
-                cloud = _from_points(np.asarray(read_points(msg)), stamp)
-                cloud.predicted = None  # a labelled input bag: the pipeline runs on it
-                clouds.append(cloud)
+            clouds = _labelled_clouds(reader, topic, cfg)
             kind = "labelled_bag"
         crs = read_crs(reader)
     if not clouds:
         raise BagError(f"bag {path} has no clouds")
     return LabelledInput(path.name, kind, clouds, crs)
+
+
+def _labelled_clouds(reader, topic: str | None, cfg: NodeInputConfig) -> list[LabelledCloud]:
+    """The clouds of a labelled bag, in bag order, prepared as the node prepares them."""
+    from lidar_obstacles.io.bags import ODOMETRY
+    from lidar_obstacles.ros.node_base import PoseBuffer
+    from lidar_obstacles.ros.stages import pose_of_odometry, prepare
+
+    cloud_topic = reader.pointcloud_topic(topic)
+    odom = [t.topic for t in reader.topics() if t.msgtype == ODOMETRY]
+    poses = PoseBuffer()
+    clouds, unplaced = [], 0
+    for rec in reader.records([cloud_topic, *odom]):
+        msg = reader.deserialize(rec)
+        if rec.topic in odom:
+            poses.add(pose_of_odometry(msg))
+            continue
+        stamp_ns = int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
+        pose = poses.nearest(stamp_ns, cfg.odometry_max_age)
+        if cfg.use_odometry and pose is None:
+            unplaced += 1  # the node drops a cloud it cannot place
+            continue
+        prep = prepare(msg, keep_non_finite=False, max_points=cfg.input.max_points,
+                       pose=pose, transform=cfg.use_odometry)
+        cloud = _from_points(prep.points, stamp_ns * 1e-9)
+        cloud.predicted = None  # a labelled input bag: the pipeline runs on it
+        cloud.vehicle = pose.position if pose is not None else None
+        clouds.append(cloud)
+    if unplaced and not clouds:
+        raise BagError(f"use_odometry is true but none of the {unplaced} clouds on "
+                       f"{cloud_topic} has an odometry pose within "
+                       f"{cfg.odometry_max_age} s of its stamp")
+    return clouds
 
 
 def run_detector(inp: LabelledInput, cfg: ObstacleDetectorConfig, *,
@@ -171,7 +205,7 @@ def evaluate(src: str | Path, *, params_file: str | Path | None = None,
     from lidar_obstacles.core.metrics import evaluate_classes, jsonable, latency_stats
 
     det_cfg, dem_cfg = _configs(params_file)
-    inp = load_input(src, topic=topic)
+    inp = load_input(src, topic=topic, cfg=det_cfg)
     latencies: list[float] = []
     if inp.kind != "replay_bag":
         latencies = run_detector(inp, det_cfg, progress=True)

@@ -311,7 +311,7 @@ def error_categories(reference: Any, predicted: Any) -> np.ndarray:
     object; Type II: reference object predicted as ground; other: an object given the
     wrong object group. Returns (N,) int8.
     """
-    from lidar_obstacles.core.metrics import GROUND, group_of
+    from lidar_obstacles.core.metrics import GROUP_GROUND, group_of
 
     ref = group_of(reference)
     pred = group_of(predicted)
@@ -319,9 +319,9 @@ def error_categories(reference: Any, predicted: Any) -> np.ndarray:
         raise CloudFormatError(f"reference {ref.shape} and prediction {pred.shape} differ")
     cat = np.zeros(ref.size, dtype=np.int8)
     wrong = ref != pred
-    cat[wrong & (ref == GROUND)] = 1
-    cat[wrong & (pred == GROUND)] = 2
-    cat[wrong & (ref != GROUND) & (pred != GROUND)] = 3
+    cat[wrong & (ref == GROUP_GROUND)] = 1
+    cat[wrong & (pred == GROUP_GROUND)] = 2
+    cat[wrong & (ref != GROUP_GROUND) & (pred != GROUP_GROUND)] = 3
     return cat
 
 
@@ -614,11 +614,15 @@ def dem_error_png(
 # --------------------------------------------------------------------------- k choice, latency
 
 
-def _k_curve_png(ks, values, chosen_k, path, *, ylabel, title, note) -> Path:
+def elbow_png(ks: Any, sse: Any, chosen_k: int, path: str | Path, *,
+              title: str = "elbow method") -> Path:
+    """Within-cluster SSE against k, the chosen k circled (seeds 000/003 and 002; the
+    DEM benchmark draws it). ks: (M,) int; sse: (M,) float, sum of squared distances in
+    standardised units."""
     k = np.asarray(ks, dtype=np.float64).ravel()
-    v = np.asarray(values, dtype=np.float64).ravel()
+    v = np.asarray(sse, dtype=np.float64).ravel()
     if k.size == 0 or k.shape != v.shape:
-        raise CloudFormatError(f"ks and values must be 1-D of equal non-zero length, got "
+        raise CloudFormatError(f"ks and sse must be 1-D of equal non-zero length, got "
                                f"{k.shape} and {v.shape}")
     fig = _figure(6.4, 4.2)
     ax = fig.add_subplot()
@@ -631,27 +635,12 @@ def _k_curve_png(ks, values, chosen_k, path, *, ylabel, title, note) -> Path:
         ax.legend(frameon=False)
     ax.set_xticks(k)
     ax.set_xlabel("number of clusters k")
-    ax.set_ylabel(ylabel)
-    ax.set_title(f"{title}\n{note}", fontsize=10)
+    ax.set_ylabel("within-cluster SSE (standardised units²)")
+    if (v > 0).all():  # SSE falls by orders of magnitude; the sweep may reach 0
+        ax.set_yscale("log")
+    ax.set_title(f"{title}\nthe bend marks where more clusters stop paying", fontsize=10)
     ax.grid(True, color="#e6e6e6")
     return _save(fig, path)
-
-
-def elbow_png(ks: Any, sse: Any, chosen_k: int, path: str | Path, *,
-              title: str = "elbow method") -> Path:
-    """Within-cluster SSE against k, the chosen k circled (seed 000/003 and 002).
-
-    ks: (M,) int; sse: (M,) float, sum of squared distances in standardised units.
-    """
-    return _k_curve_png(ks, sse, chosen_k, path, ylabel="within-cluster SSE (standardised units²)",
-                        title=title, note="the bend marks where more clusters stop paying")
-
-
-def silhouette_png(ks: Any, scores: Any, chosen_k: int, path: str | Path, *,
-                   title: str = "silhouette coefficient") -> Path:
-    """Mean silhouette coefficient (−1..1) against k, the chosen k circled (seed 001)."""
-    return _k_curve_png(ks, scores, chosen_k, path, ylabel="mean silhouette coefficient",
-                        title=title, note="higher is better separated")
 
 
 def latency_histogram_png(latencies_s: Any, path: str | Path, *,

@@ -152,8 +152,8 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
     sources = list(sources)
     if validate is None and len(sources) > 1:
         validate = [sources.pop()]  # guard against overfitting: keep one input unseen
-    inputs = [load_input(p) for p in sources]
-    held_out = [load_input(p) for p in (validate or [])]
+    inputs = [load_input(p, cfg=start) for p in sources]
+    held_out = [load_input(p, cfg=start) for p in (validate or [])]
     sobol = qmc.Sobol(d=len(dims), scramble=True, seed=seed)
     t_end = time.monotonic() + budget_s
     trials: list[dict] = []

@@ -157,12 +157,25 @@ def test_rolling_dem_window_follows_vehicle_and_is_bounded():
     dem = RollingDem(cfg)
     assert dem.snapshot().shape == (0, 0)
     pts = _plane_points(0, 100, 0.5)
+    strips = []
     for x0 in range(0, 80, 10):
         strip = pts[(pts[:, 0] >= x0) & (pts[:, 0] < x0 + 15)]
-        dem.update(strip, np.array([x0 + 7.5, 50.0]), float(x0))
+        strips.append(strip)
+        vehicle = np.array([x0 + 7.5, 50.0])
+        dem.update(strip, vehicle, float(x0))
         snap = dem.snapshot()
         assert snap.shape == (20, 20)  # bounded: the window never grows
-        assert snap.origin[0] == x0 + 7.5 - 10 - 0.5 or snap.origin[0] % 1.0 == 0
+        # 20 cells centred on the vehicle's cell: x from floor(x0 + 7.5) - 10 = x0 - 3
+        lo = snap.origin
+        hi = lo + np.array(snap.shape[::-1]) * snap.resolution
+        assert np.array_equal(lo, [x0 - 3.0, 40.0])
+        assert np.all(lo <= vehicle) and np.all(vehicle < hi)
+        if x0 >= 20:  # the start (7.5, 50) is more than half a window behind: left
+            assert lo[0] > 7.5
+        # what the window holds: exactly the points seen inside it, older cells forgotten
+        seen = sum(int(np.all((s[:, :2] >= lo) & (s[:, :2] < hi), axis=1).sum())
+                   for s in strips)
+        assert snap.count.sum() == seen
     assert dem.stamp == 70.0
     snap = dem.snapshot()
     measured = snap.count > 0

@@ -5,6 +5,7 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from conftest import DATA, REPO, data_file
@@ -28,6 +29,33 @@ def test_evaluate_replay_output_and_report(tmp_path):
         assert (tmp_path / "report" / f"{png}.png").stat().st_size > 5000, png
     assert html.count("data:image/png;base64,") >= 5
     assert json.loads((tmp_path / "report" / "metrics.json").read_text())["n_points"] == m["n_points"]
+
+
+def test_evaluate_a_sensor_frame_bag_through_its_odometry(tmp_path):
+    # a labelled flight in the sensor frame: the detector sees it as the node would
+    run_cli("simulate", tmp_path / "sensor", "--duration", "1", "--frame", "sensor",
+            "--seed", "3")
+    params = tmp_path / "odom.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    use_odometry: true\n")
+    m = run_cli("evaluate", tmp_path / "sensor", "--no-dem", "--params-file", params)
+    assert m["kind"] == "labelled_bag" and m["clouds"] == 10
+    assert m["ground_object"]["kappa"] > 0.9
+    # the same flight simulated in the map frame scores the same
+    run_cli("simulate", tmp_path / "map", "--duration", "1", "--seed", "3")
+    mapped = run_cli("evaluate", tmp_path / "map", "--no-dem")
+    assert m["n_points"] == mapped["n_points"]
+    assert m["ground_object"]["kappa"] == pytest.approx(mapped["ground_object"]["kappa"],
+                                                        abs=0.01)
+    # ... because its clouds were moved into the map frame, and the vehicle is known
+    from lidar_obstacles.config import ObstacleDetectorConfig, replace
+    from lidar_obstacles.evaluate import load_input
+
+    odom = replace(ObstacleDetectorConfig(), {"use_odometry": True})
+    for a, b in zip(load_input(tmp_path / "sensor", cfg=odom).clouds,
+                    load_input(tmp_path / "map").clouds, strict=True):
+        assert np.allclose(a.xyz.min(axis=0), b.xyz.min(axis=0), atol=0.01)
+        assert np.allclose(a.xyz.max(axis=0), b.xyz.max(axis=0), atol=0.01)
+        assert a.vehicle is not None and np.allclose(a.vehicle, b.vehicle)
 
 
 def test_evaluate_las_file():

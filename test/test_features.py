@@ -84,7 +84,7 @@ def test_flat_plane_has_no_features():
 
 @pytest.mark.parametrize("method", ["faithful", "fast"])
 def test_box_edges_are_features_faces_are_not(box_runs, method):
-    _, dist, runs = box_runs
+    xyz, dist, runs = box_runs
     res = runs[method]
     precision, recall = _precision_recall(res, dist)
     assert precision >= 0.9 and recall >= 0.6, (precision, recall)
@@ -92,7 +92,18 @@ def test_box_edges_are_features_faces_are_not(box_runs, method):
     assert res.feature[interior].mean() < 0.02
     assert res.feature.dtype == bool and res.clusters.dtype == np.int8
     assert set(np.unique(res.clusters)) <= set(range(0, FAST.max_clusters + 2))
-    assert np.array_equal(res.feature, (res.clusters >= 2) & (res.clusters <= FAST.max_clusters))
+    # Known answers on the box of `_box` (3 x 2.5 x 2 m, no floor): the point nearest the
+    # middle of each of its 8 edges is a feature; around each face's centre the points
+    # are one plane (a single cluster of normals), none a feature.
+    L, W, H = 3.0, 2.5, 2.0
+    for mid in [(L / 2, 0, H), (L, W / 2, H), (L / 2, W, H), (0, W / 2, H),
+                (0, 0, H / 2), (L, 0, H / 2), (L, W, H / 2), (0, W, H / 2)]:
+        assert res.feature[np.argmin(np.linalg.norm(xyz - mid, axis=1))], mid
+    for centre in [(L / 2, W / 2, H), (L / 2, 0, H / 2), (L / 2, W, H / 2),
+                   (0, W / 2, H / 2), (L, W / 2, H / 2)]:
+        near = np.linalg.norm(xyz - centre, axis=1) < 0.5
+        assert near.sum() >= 10, centre
+        assert not res.feature[near].any() and np.all(res.clusters[near] == 1), centre
     assert {"neighbours", "gaussian_map", "kmeans", "total"} <= set(res.timings)
 
 

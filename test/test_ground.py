@@ -3,13 +3,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial import Delaunay
 
 from lidar_obstacles.config import ObstacleDetectorConfig, replace
 from lidar_obstacles.core.context import GroundContext
 from lidar_obstacles.core.ground import (HybridSettings, _dense_band, _ground_density,
                                          _Inpainter, _median_trend, _Opening, _slope,
                                          _steep_objects, _window_extreme, classify_ground,
-                                         inpaint, morphological_ground)
+                                         inpaint, morphological_ground, tin_densification)
 from lidar_obstacles.core.ransac import fit_plane_eigen, ransac_plane, required_trials
 
 METHODS = ("hybrid", "tin", "ransac")
@@ -328,3 +329,27 @@ def test_dense_scans_reject_low_objects_that_sparse_scans_cannot():
             assert res.ground[~low].mean() > 0.99
         else:
             assert res.ground[low].mean() > 0.95
+
+
+def test_tin_min_edge_stops_densifying_small_triangles():
+    # a flat 40 x 40 m field at 1 m spacing: with no minimum every point inside the seeds'
+    # hull joins the ground; with a minimum longer than the seed spacing no triangle is
+    # densified: only the seeds
+    g = np.arange(0.5, 40, 1.0)
+    gx, gy = np.meshgrid(g, g)
+    xyz = np.column_stack([gx.ravel(), gy.ravel(),
+                           np.random.default_rng(4).normal(0, 0.01, gx.size)])
+    xyz -= xyz.mean(axis=0)
+
+    def ground(min_edge: float) -> np.ndarray:
+        cfg = replace(ObstacleDetectorConfig(), {"tin.min_edge": min_edge, "tin.cell_size": 10.0,
+                                                 "tin.max_iterations": 500}).tin
+        return tin_densification(xyz, cfg)
+
+    everything = ground(0.0)
+    seeds = ground(40.0)
+    assert seeds.sum() == 16
+    inside = Delaunay(xyz[seeds, :2]).find_simplex(xyz[:, :2]) >= 0
+    assert np.array_equal(everything, inside)  # the lowest point of each 10 m cell
+    # a minimum of a few metres stops at about that spacing: most points stay unjudged
+    assert 16 < ground(4.0).sum() < 0.5 * everything.sum()

@@ -97,7 +97,10 @@ def test_sensor_frame_flight_needs_and_uses_odometry(tmp_path):
 def test_replay_is_deterministic(sim_bag, tmp_path):
     run_cli("replay", sim_bag, tmp_path / "a", "--no-dem")
     run_cli("replay", sim_bag, tmp_path / "b", "--no-dem")
-    for x, y in zip(clouds(tmp_path / "a", "/obstacles"), clouds(tmp_path / "b", "/obstacles")):
+    a, b = clouds(tmp_path / "a", "/obstacles"), clouds(tmp_path / "b", "/obstacles")
+    assert len(a) == len(b) > 0  # zip alone would pass two empty or unequal replays
+    assert sum(len(x) for x in a) > 0  # and some obstacle points to compare
+    for x, y in zip(a, b):
         assert x.tobytes() == y.tobytes()
 
 

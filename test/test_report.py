@@ -46,7 +46,6 @@ def test_pngs(tmp_path, cloud):
     png_size(R.dem_error_png(grid - grid.mean(), 0.5, (0.0, 0.0), tmp_path / "d.png"))
     assert png_size(R.elbow_png([1, 2, 3, 4], [10, 5, 3, 2.5], 3, tmp_path / "k.png")) == (
         int(6.4 * R.DPI), int(4.2 * R.DPI))
-    png_size(R.silhouette_png([2, 3, 4], [0.3, 0.6, 0.5], 3, tmp_path / "s.png"))
     assert png_size(R.latency_histogram_png(np.linspace(0.01, 0.05, 200), tmp_path / "l.png")) == (
         7 * R.DPI, int(4.2 * R.DPI))
     assert not list(tmp_path.glob(".*tmp"))  # atomic writes leave no temp files

@@ -13,6 +13,23 @@ import functools
 
 import numpy as np
 
+from lidar_obstacles.errors import CloudFormatError
+
+
+def points_xyz(xyz: np.ndarray, what: str) -> np.ndarray:
+    """xyz as (N, 3) float64 metres (no copy when it is one already). CloudFormatError,
+    naming ``what``, when it has another shape or holds a NaN or an infinity: an (N, 6)
+    array must not pass as 2N points, and a NaN must not reach a plane fit (an SVD that
+    does not converge says nothing of the cloud)."""
+    arr = np.asarray(xyz, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise CloudFormatError(f"{what}: expected points of shape (N, 3), got {arr.shape}")
+    if not np.isfinite(arr).all():
+        bad = int(len(arr) - np.count_nonzero(all_columns(np.isfinite(arr))))
+        raise CloudFormatError(f"{what}: {bad} of {len(arr)} points have a NaN or infinite "
+                               "coordinate (drop them first)")
+    return arr
+
 
 def column_min(a: np.ndarray) -> np.ndarray:
     """(K,) minimum of each column of (N, K) a (N >= 1)."""

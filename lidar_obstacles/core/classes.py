@@ -1,6 +1,11 @@
 """ASPRS classification codes used in the `class` field (the contract's list)."""
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # numpy is imported where it is used, not at import time
+    import numpy as np
+
 UNCLASSIFIED = 1  # obstacle of no other class: pole, vehicle, crane...
 GROUND = 2
 LOW_VEGETATION = 3  # < 0.5 m above ground
@@ -26,8 +31,13 @@ CLASS_COLOURS: dict[int, tuple[float, float, float]] = {
 }
 
 
-def vegetation_class(height_above_ground):
-    """Vegetation code by height above ground (array in metres -> uint8 array)."""
+def vegetation_class(height_above_ground: np.ndarray | float) -> np.ndarray:
+    """ASPRS vegetation code by height above ground.
+
+    height_above_ground: (N,) float (or any shape, or a scalar), metres. Returns a uint8
+    array of the same shape: LOW_VEGETATION below 0.5 m, MEDIUM_VEGETATION 0.5-2 m
+    (inclusive), HIGH_VEGETATION above 2 m.
+    """
     import numpy as np
 
     h = np.asarray(height_above_ground)

@@ -70,7 +70,8 @@ MAX_LLOYD = 50  # Lloyd iterations per K-means run; the paper iterates to conver
 
 # Working memory per chunk, roughly: the silhouette holds (C, P, P) pairwise distances
 # (66 kB per point at k = 14 in float64, 33 kB in float32) and K-means (C R, P, k')
-# arrays; at the defaults a chunk is 122 points (faithful) or 245 (fast), ~32 MB.
+# arrays; at the defaults (k = 14, max_clusters = 4, restarts = 1) `_chunk_size` gives 146
+# points (faithful) or 292 (fast), ~32 MB.
 CHUNK_BYTES = 32 * 2**20
 
 # `fast`: l3 / l2 of the point and its k neighbours below which a point is a plane without

@@ -70,6 +70,7 @@ import numpy as np
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from lidar_obstacles.config import GroundConfig, RansacConfig, TilingConfig, TinConfig
+from lidar_obstacles.core.arrays import points_xyz
 from lidar_obstacles.core.ransac import ransac_plane
 
 # TIN variant: a seed this far below the median of its neighbouring seeds is a low blunder.
@@ -246,8 +247,11 @@ def _drop_odd_seeds(seeds_xyz: np.ndarray) -> np.ndarray:
 
 
 def _facet_test(tri: Delaunay, ground_xyz: np.ndarray, pts: np.ndarray, simplex: np.ndarray,
-                max_distance: float, max_angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
-    """(M,) bool accepted and (M,) distance to the facet plane, for points inside facets."""
+                max_distance: float, max_angle_deg: float, min_edge: float = 0.0
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) bool accepted and (M,) distance (m) to the facet plane, for points pts (M, 3) m
+    inside facets `simplex` (M,) of the TIN of ground_xyz (G, 3) m. A facet whose longest
+    horizontal edge is below `min_edge` m is dense enough and takes no more points."""
     v = ground_xyz[tri.simplices[simplex]]  # (M, 3 vertices, 3)
     normal = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
     norm = np.linalg.norm(normal, axis=1)
@@ -256,6 +260,9 @@ def _facet_test(tri: Delaunay, ground_xyz: np.ndarray, pts: np.ndarray, simplex:
     s = np.linalg.norm(v - pts[:, None, :], axis=2)  # distances to the three vertices
     sin_max = np.sin(np.radians(max_angle_deg))
     ok = (d < max_distance) & np.all(d[:, None] < sin_max * np.maximum(s, 1e-9), axis=1)
+    if min_edge > 0:
+        edges = v[:, [1, 2, 0], :2] - v[:, :, :2]  # (M, 3 edges, 2)
+        ok &= np.einsum("mei,mei->me", edges, edges).max(axis=1) >= min_edge * min_edge
     return ok, d
 
 
@@ -290,7 +297,8 @@ def tin_densification(xyz: np.ndarray, cfg: TinConfig, *, fixed: np.ndarray | No
         cand, simplex = cand[inside], simplex[inside]
         if len(cand) == 0:
             break
-        ok, d = _facet_test(tri, g_xyz, xyz[cand], simplex, cfg.max_distance, cfg.max_angle)
+        ok, d = _facet_test(tri, g_xyz, xyz[cand], simplex, cfg.max_distance, cfg.max_angle,
+                            cfg.min_edge)
         cand, simplex, d = cand[ok], simplex[ok], d[ok]
         if len(cand) == 0:
             break
@@ -1157,17 +1165,33 @@ def _ransac_tiles(xyz: np.ndarray, tiling: TilingConfig, rcfg: RansacConfig,
     return ground, tiles, splits
 
 
+def _collinear_xy(pts: np.ndarray) -> bool:
+    """Whether all points (N, 3) m lie on one line (or one spot) in XY: the smaller
+    eigenvalue of their XY covariance is below 1e-12 of the larger. All the points, not a
+    sample: every k-th point of an organized scan can be one column of it."""
+    x, y = pts[:, 0] - pts[0, 0], pts[:, 1] - pts[0, 1]  # near 0: the sums below keep digits
+    n = len(pts)
+    mx, my = x.sum() / n, y.sum() / n
+    sxx, syy, sxy = x @ x - n * mx * mx, y @ y - n * my * my, x @ y - n * mx * my
+    half = 0.5 * (sxx + syy)
+    large = half + np.sqrt(max(half * half - (sxx * syy - sxy * sxy), 0.0))
+    # det / large: the small eigenvalue without the cancellation of half - sqrt(...)
+    return bool(large <= 0 or (sxx * syy - sxy * sxy) / large <= 1e-12 * large)
+
+
 def classify_ground(xyz: np.ndarray, *, tiling: TilingConfig, ground: GroundConfig,
                     tin: TinConfig, ransac: RansacConfig, context_xyz: np.ndarray | None = None,
                     rng: np.random.Generator | None = None) -> GroundResult:
     """Ground mask and height above ground of (N, 3) float64 points (metres, z up).
 
     context_xyz: (M, 3) ground of earlier messages (the streaming context) or None.
-    Degenerate input (empty, fewer than 3 points, collinear) gives everything ground with
-    height 0 — there is no surface to be above.
+    Fewer than 3 points are all ground with height 0 (there is no surface to be above).
+    Points collinear or coincident in XY go to the raster filter (`hybrid`) whatever
+    `ground.method` says: a TIN or a plane needs an area. CloudFormatError when xyz is
+    not (N, 3) or holds a NaN or an infinity.
     """
     t0 = time.perf_counter()
-    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    xyz = points_xyz(xyz, "classify_ground")
     n = len(xyz)
     if n < 3:
         return GroundResult(np.ones(n, bool), np.zeros(n, np.float32), 0, 0, {"total": 0.0})
@@ -1179,10 +1203,9 @@ def classify_ground(xyz: np.ndarray, *, tiling: TilingConfig, ground: GroundConf
     pts = xyz - origin
     fixed = None if context_xyz is None or len(context_xyz) == 0 else context_xyz - origin
     tiles, splits = 1, 0
-    sv = np.linalg.svd(sample[:, :2] - origin[:2], compute_uv=False)
     method = ground.method
-    if sv[1] <= 1e-6 * max(sv[0], 1e-12):
-        method = "hybrid"  # collinear or coincident in XY: no TIN, no tiles; the raster copes
+    if _collinear_xy(pts):
+        method = "hybrid"  # no TIN, no tiles; the raster copes
     if method == "hybrid":
         is_ground, z_ground = morphological_ground(pts, HybridSettings(cell=ground.cell,
                                                    slope=ground.slope, window=ground.window,

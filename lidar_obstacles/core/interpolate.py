@@ -110,7 +110,12 @@ def degeneracy(xy: np.ndarray) -> str:
 
 
 def tin(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray) -> np.ndarray:
-    """Linear interpolation on the Delaunay TIN; NaN outside the hull or when degenerate."""
+    """Linear interpolation on the Delaunay TIN; NaN outside the hull or when degenerate.
+
+    xy: (N, 2) float64 sample positions, metres (coincident ones merged first, see
+    :func:`merge_coincident`). z: (N,) float64 sample heights, metres. query_xy: (M, 2)
+    float64, metres. Returns (M,) float64 heights, metres.
+    """
     out = np.full(len(query_xy), np.nan)
     if degeneracy(xy) or len(query_xy) == 0:
         return out
@@ -154,7 +159,12 @@ def tin(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray) -> np.ndarray:
 
 def idw(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray, *, neighbours: int = 8,
         power: float = 2.0) -> np.ndarray:
-    """Inverse distance weighting of the ``neighbours`` nearest samples (exact at samples)."""
+    """Inverse distance weighting of the ``neighbours`` nearest samples (exact at samples).
+
+    xy: (N, 2) float64 sample positions, metres. z: (N,) float64 sample heights, metres.
+    query_xy: (M, 2) float64, metres. power: the exponent p of the weights 1 / d^p (d in
+    metres). Returns (M,) float64 heights, metres; all NaN when there are no samples.
+    """
     if len(xy) == 0:
         return np.full(len(query_xy), np.nan)
     k = min(neighbours, len(xy))
@@ -212,6 +222,11 @@ def fit_variogram(xy: np.ndarray, z: np.ndarray, *, model: str, neighbours: int,
     lags local kriging sees) plus 20000 random pairs (the sill). Lags are binned by
     quantiles so every bin holds as many pairs; the model is fitted by least squares with
     short lags weighted up. A flat or tiny set gives a pure linear variogram.
+
+    xy: (N, 2) float64 sample positions, metres. z: (N,) float64 sample heights, metres.
+    neighbours: the neighbourhood size of local kriging (count). rng: seed or generator of
+    the random pairs. Returns the Variogram: nugget and partial_sill in m^2 (semivariance
+    of z), range_ in metres.
     """
     gen = np.random.default_rng(rng)
     n = len(xy)
@@ -425,7 +440,13 @@ def _rbf_kernel(name: str, k: int) -> Callable[[np.ndarray], np.ndarray]:
 def rbf(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray, *, cfg: RbfConfig) -> np.ndarray:
     """Local RBF interpolation with a linear polynomial (a constant when the samples
     are collinear, where a plane is undetermined) on the ``cfg.neighbours`` nearest
-    samples; exact for planes."""
+    samples; exact for planes.
+
+    xy: (N, 2) float64 sample positions, metres (coincident ones merged first). z: (N,)
+    float64 sample heights, metres. query_xy: (M, 2) float64, metres. cfg: kernel, number
+    of neighbours, smoothing (added to the kernel matrix diagonal, distances scaled by
+    the neighbourhood radius). Returns (M,) float64 heights, metres.
+    """
     fn = _rbf_kernel(cfg.kernel, min(cfg.neighbours, len(xy)))
     return _local_dual(xy, z, query_xy, k=cfg.neighbours, kernel=lambda r2, _scale: fn(r2),
                        linear_drift=not degeneracy(xy), diagonal=cfg.smoothing)

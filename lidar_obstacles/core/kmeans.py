@@ -30,6 +30,7 @@ from scipy import ndimage
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from lidar_obstacles.config import KmeansConfig
+from lidar_obstacles.core.arrays import points_xyz
 from lidar_obstacles.core.interpolate import idw, tin
 from lidar_obstacles.errors import CloudFormatError
 
@@ -210,7 +211,8 @@ def knee_index(values: np.ndarray) -> int:
 
 @dataclass(frozen=True)
 class ElbowResult:
-    """K-means with k chosen at the elbow. sse: (max_k,) best SSE for k = 1..max_k."""
+    """K-means with k chosen at the elbow. sse: (K,) best SSE for k = 1..K, K <= max_k (the
+    sweep stops once the SSE reaches 0: more clusters cannot do better)."""
 
     k: int
     sse: np.ndarray
@@ -420,9 +422,7 @@ def kmeans_ground(xyz: np.ndarray, *, cfg: KmeansConfig, intensity: np.ndarray |
     warning is logged (once per distinct reason in a process, so a stream of messages
     does not repeat it). rng defaults to ``cfg.seed``.
     """
-    xyz = np.asarray(xyz, dtype=np.float64)
-    if xyz.ndim != 2 or xyz.shape[1] != 3:
-        raise CloudFormatError(f"kmeans_ground: expected (N, 3) points, got {xyz.shape}")
+    xyz = points_xyz(xyz, "kmeans_ground")
     n = len(xyz)
     gen = np.random.default_rng(cfg.seed if rng is None else rng)
     if n < 4:

@@ -92,25 +92,26 @@ from typing import Any
 
 import numpy as np
 
+from lidar_obstacles.core.classes import TOWER, WIRE
 from lidar_obstacles.errors import CloudFormatError, ConfigError
 
 GROUPS: tuple[str, ...] = ("ground", "vegetation", "building", "wire", "tower", "other")
 """Names of the evaluation groups; index i of a group is its row/column in the matrices."""
 
-GROUND, VEGETATION, BUILDING, WIRE, TOWER, OTHER = range(len(GROUPS))
+# Group indices, named apart from the ASPRS codes of core.classes (GROUND there is 2)
+GROUP_GROUND, GROUP_VEGETATION, GROUP_BUILDING, GROUP_WIRE, GROUP_TOWER, GROUP_OTHER = range(
+    len(GROUPS))
 
 GROUND_CODES: tuple[int, ...] = (2, 8, 9, 11)
 """ASPRS codes read as ground level (ground, model key-point, water, road surface)."""
 
-_CODE_TO_GROUP = np.full(256, OTHER, dtype=np.int64)
-_CODE_TO_GROUP[list(GROUND_CODES)] = GROUND
-_CODE_TO_GROUP[[3, 4, 5]] = VEGETATION
-_CODE_TO_GROUP[6] = BUILDING
-_CODE_TO_GROUP[14] = WIRE
-_CODE_TO_GROUP[15] = TOWER
+_CODE_TO_GROUP = np.full(256, GROUP_OTHER, dtype=np.int64)
+_CODE_TO_GROUP[list(GROUND_CODES)] = GROUP_GROUND
+_CODE_TO_GROUP[[3, 4, 5]] = GROUP_VEGETATION
+_CODE_TO_GROUP[6] = GROUP_BUILDING
+_CODE_TO_GROUP[WIRE] = GROUP_WIRE
+_CODE_TO_GROUP[TOWER] = GROUP_TOWER
 
-WIRE_CODE = 14
-TOWER_CODE = 15
 
 
 # --------------------------------------------------------------------------- helpers
@@ -403,10 +404,10 @@ def evaluate_classes(
         }
         for i, name in enumerate(GROUPS)
     }
-    ref_ground = ref == GROUND
-    pred_ground = pred == GROUND
-    is_wire = ref_codes == WIRE_CODE
-    is_tower = ref_codes == TOWER_CODE
+    ref_ground = ref == GROUP_GROUND
+    pred_ground = pred == GROUP_GROUND
+    is_wire = ref_codes == WIRE
+    is_tower = ref_codes == TOWER
     n_wire = int(is_wire.sum())
     n_tower = int(is_tower.sum())
     wire_hit = int((is_wire & pred_ground).sum())

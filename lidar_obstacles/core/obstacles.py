@@ -79,7 +79,6 @@ class ObstacleObject:
     n_points: int
     min_xyz: np.ndarray
     max_xyz: np.ndarray
-    centroid: np.ndarray
     height_above_ground: float  # highest point above ground, m
     clearance: float  # lowest point above ground (a wire's sag clearance), m
 
@@ -672,7 +671,6 @@ def _objects(xyz: np.ndarray, hag: np.ndarray, classes: np.ndarray,
     for a in range(3):
         np.minimum.at(lo[:, a], inv, xyz[sel, a])
         np.maximum.at(hi[:, a], inv, xyz[sel, a])
-    sums = np.stack([np.bincount(inv, xyz[sel, a], k) for a in range(3)], axis=1)
     hmax = np.full(k, -np.inf)
     hmin = np.full(k, np.inf)
     np.maximum.at(hmax, inv, hag[sel])
@@ -682,7 +680,7 @@ def _objects(xyz: np.ndarray, hag: np.ndarray, classes: np.ndarray,
     np.add.at(cls_count, (inv, classes[sel]), 1)
     cls = cls_count.argmax(axis=1)
     return [ObstacleObject(int(ids[i]), int(cls[i]), int(counts[i]), lo[i], hi[i],
-                           sums[i] / counts[i], float(hmax[i]), float(hmin[i]))
+                           float(hmax[i]), float(hmin[i]))
             for i in range(k)]
 
 

@@ -4,19 +4,23 @@
 messages; `ground_step`), then obstacle classification and the clearance grid
 (`obstacle_step`, which remembers the towers it saw). `DemPipeline.process` finds the
 ground (K-means or the detector's filter) and updates the rolling DEM. Results are values;
-the only long-lived state is the ground context, the towers and the rolling DEM, each held
-by one explicit object, so the halves can run in different processes (`replay`).
+the only long-lived state is the ground context (`StreamingGround`), the towers and the
+rolling DEM, each held by one explicit object, so the halves can run in different processes (`replay`).
 """
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lidar_obstacles.config import DemBuilderConfig, DemConfig, ObstacleDetectorConfig
-from lidar_obstacles.core.arrays import all_columns, column_max, column_min
+from lidar_obstacles.core.arrays import all_columns, column_max, column_min, points_xyz
 from lidar_obstacles.core.classes import GROUND, NOISE
+
+if TYPE_CHECKING:
+    from lidar_obstacles.core.ground import GroundResult
 
 TOWER_MEMORY_SECONDS = 60.0  # s: how long a recognised tower is remembered
 TOWER_MEMORY_SIZE = 256  # towers remembered at most (bounded memory on any flight)
@@ -71,17 +75,59 @@ class ObstacleResult:
     edges: np.ndarray | None = None
 
 
+class StreamingGround:
+    """The ground filter over a stream of clouds, with what it keeps between them: the
+    rolling ground context and the random stream of the `ransac` method. The obstacle
+    detector and the DEM's `detector` ground source both use one, so that the DEM
+    `replay` builds from the detector's ground is the one `dem_builder` builds alone.
+
+    cfg: any config with `tiling`, `ground`, `tin`, `ransac` and `context`."""
+
+    def __init__(self, cfg: ObstacleDetectorConfig | DemBuilderConfig) -> None:
+        from lidar_obstacles.core.context import GroundContext
+
+        self.cfg = cfg
+        self.context = GroundContext(cfg.context)
+        self.rng = np.random.default_rng(cfg.ransac.seed)
+
+    def reconfigure(self, cfg: ObstacleDetectorConfig | DemBuilderConfig) -> None:
+        """New parameters; the context and the random stream are kept unless their own
+        parameters changed."""
+        from lidar_obstacles.core.context import GroundContext
+
+        if cfg.context != self.cfg.context:
+            self.context = GroundContext(cfg.context)
+        if cfg.ransac.seed != self.cfg.ransac.seed:
+            self.rng = np.random.default_rng(cfg.ransac.seed)
+        self.cfg = cfg
+
+    def classify(self, xyz: np.ndarray, stamp: float) -> tuple[GroundResult, dict[str, float]]:
+        """Ground of one cloud xyz (N >= 1, 3) float64 m, filtered with the context around
+        it, which this cloud's ground then joins (stamp: seconds). Returns the result and
+        the seconds spent reading the context, filtering and updating the context."""
+        from lidar_obstacles.core.ground import classify_ground
+
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        lo, hi = column_min(xyz[:, :2]), column_max(xyz[:, :2])
+        context_xyz = self.context.points_near(lo, hi, stamp)
+        t1 = time.perf_counter()
+        g = classify_ground(xyz, tiling=cfg.tiling, ground=cfg.ground, tin=cfg.tin,
+                            ransac=cfg.ransac, context_xyz=context_xyz, rng=self.rng)
+        t2 = time.perf_counter()
+        self.context.update(xyz[g.ground], stamp, xyz[:, :2])
+        return g, {"context": t1 - t0, "ground": t2 - t1,
+                   "context_update": time.perf_counter() - t2}
+
+
 class ObstacleDetector:
     """Ground, obstacles and clearance for a stream of clouds in a gravity-aligned frame."""
 
     def __init__(self, cfg: ObstacleDetectorConfig | None = None) -> None:
-        from lidar_obstacles.core.context import GroundContext
-
         self.cfg = cfg or ObstacleDetectorConfig()
-        self.context = GroundContext(self.cfg.context)
         # One random stream per half (ground: the `ransac` and `tin` methods; obstacles: the
         # roofs' RANSAC), so that the halves may run in different processes.
-        self._ground_rng = np.random.default_rng(self.cfg.ransac.seed)
+        self.ground = StreamingGround(self.cfg)
         self._obstacle_rng = np.random.default_rng(self.cfg.ransac.seed)
         self._feature_rng = np.random.default_rng(self.cfg.features.seed)
         self._towers = np.zeros((0, 4))  # x, y, radius (m), stamp (s) of towers seen
@@ -104,12 +150,8 @@ class ObstacleDetector:
     def reconfigure(self, cfg: ObstacleDetectorConfig) -> None:
         """Take new parameters for the next message; the ground context is kept when its
         own parameters did not change."""
-        from lidar_obstacles.core.context import GroundContext
-
-        if cfg.context != self.cfg.context:
-            self.context = GroundContext(cfg.context)
+        self.ground.reconfigure(cfg)
         if cfg.ransac.seed != self.cfg.ransac.seed:
-            self._ground_rng = np.random.default_rng(cfg.ransac.seed)
             self._obstacle_rng = np.random.default_rng(cfg.ransac.seed)
         if cfg.features.seed != self.cfg.features.seed:
             self._feature_rng = np.random.default_rng(cfg.features.seed)
@@ -130,24 +172,12 @@ class ObstacleDetector:
         context of earlier clouds, which this cloud's ground then joins. Its only state is
         the context, so `replay` can run the second half in another process, one cloud
         behind."""
-        from lidar_obstacles.core.ground import classify_ground
-
-        cfg = self.cfg
-        t0 = time.perf_counter()
-        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        xyz = points_xyz(xyz, "obstacle detector")
         if len(xyz) == 0:
             return GroundStep(xyz, np.zeros(0, bool), np.zeros(0, np.float32), stamp,
                               vehicle_xyz, {"total": 0.0})
-        lo, hi = column_min(xyz[:, :2]), column_max(xyz[:, :2])
-        context_xyz = self.context.points_near(lo, hi, stamp)
-        t1 = time.perf_counter()
-        g = classify_ground(xyz, tiling=cfg.tiling, ground=cfg.ground, tin=cfg.tin,
-                            ransac=cfg.ransac, context_xyz=context_xyz, rng=self._ground_rng)
-        t2 = time.perf_counter()
-        self.context.update(xyz[g.ground], stamp, xyz[:, :2])
-        t3 = time.perf_counter()
-        return GroundStep(xyz, g.ground, g.height_above_ground, stamp, vehicle_xyz,
-                          {"context": t1 - t0, "ground": t2 - t1, "context_update": t3 - t2})
+        g, timings = self.ground.classify(xyz, stamp)
+        return GroundStep(xyz, g.ground, g.height_above_ground, stamp, vehicle_xyz, timings)
 
     def obstacle_step(self, step: GroundStep) -> ObstacleResult:
         """The second half of `process`: obstacle classes, objects and the clearance grid
@@ -272,7 +302,7 @@ class DemPipeline:
 
         self.cfg = cfg or DemBuilderConfig()
         self.dem = RollingDem(self.cfg)
-        self._context = None  # ground context of the `detector` ground source, made on first use
+        self._ground: StreamingGround | None = None  # the `detector` source's, on first use
 
     def reconfigure(self, cfg: DemBuilderConfig) -> None:
         from lidar_obstacles.core.dem import RollingDem
@@ -285,24 +315,16 @@ class DemPipeline:
             self.dem = RollingDem(cfg)
         else:
             self.dem.cfg = cfg  # interpolation settings apply from the next update
-        self._context = None
+        if self._ground is not None:
+            self._ground.reconfigure(cfg)
 
     def ground_of(self, xyz: np.ndarray, *, stamp: float,
                   intensity: np.ndarray | None) -> np.ndarray:
         """(N,) bool ground mask by the configured `dem.ground_source`."""
         if self.cfg.dem.ground_source == "detector":
-            from lidar_obstacles.core.context import GroundContext
-            from lidar_obstacles.core.ground import classify_ground
-
-            if self._context is None:
-                self._context = GroundContext(self.cfg.context)
-            ctx = self._context
-            lo, hi = column_min(xyz[:, :2]), column_max(xyz[:, :2])
-            g = classify_ground(xyz, tiling=self.cfg.tiling, ground=self.cfg.ground,
-                                tin=self.cfg.tin, ransac=self.cfg.ransac,
-                                context_xyz=ctx.points_near(lo, hi, stamp),
-                                rng=np.random.default_rng(self.cfg.ransac.seed))
-            ctx.update(xyz[g.ground], stamp, xyz[:, :2])
+            if self._ground is None:
+                self._ground = StreamingGround(self.cfg)
+            g, _ = self._ground.classify(xyz, stamp)
             return bare_earth_of(xyz, g.ground, g.height_above_ground, self.cfg.dem)
         from lidar_obstacles.core.kmeans import kmeans_ground
 
@@ -313,7 +335,7 @@ class DemPipeline:
                 intensity: np.ndarray | None = None) -> dict[str, float]:
         """Add one cloud's ground to the rolling DEM. Returns timings in seconds."""
         t0 = time.perf_counter()
-        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        xyz = points_xyz(xyz, "DEM builder")
         if len(xyz) == 0:
             return {"ground": 0.0, "update": 0.0, "total": 0.0}
         ground = self.ground_of(xyz, stamp=stamp, intensity=intensity)

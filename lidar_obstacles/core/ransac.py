@@ -36,7 +36,11 @@ class RansacResult:
 
 def fit_plane_eigen(xyz: np.ndarray) -> Plane | None:
     """Total-least-squares plane: the normal is the eigenvector of the smallest eigenvalue
-    of the points' covariance. None for fewer than 3 points or a degenerate (collinear) set."""
+    of the points' covariance. None for fewer than 3 points or a degenerate (collinear) set.
+
+    xyz: (N, 3) float64 points, metres. Returns a Plane with normal (3,) unit vector
+    (normal[2] >= 0) and d in metres (normal . p = d), in the points' own frame.
+    """
     if len(xyz) < 3:
         return None
     centre = column_mean(xyz)
@@ -65,8 +69,10 @@ def ransac_plane(xyz: np.ndarray, *, distance_threshold: float, probability: flo
                  max_tilt_deg: float | None = None, batch: int = 64) -> RansacResult:
     """Best plane of (N, 3) points by inlier count, refitted on its inliers.
 
-    max_tilt_deg: only planes whose normal is within this angle of vertical (ground,
-    roofs) are hypotheses. Deterministic for a given rng.
+    xyz: (N, 3) float64 points, metres. distance_threshold: metres; a point is an inlier
+    when its distance to the plane is below it. max_tilt_deg: degrees; only planes whose
+    normal is within this angle of vertical (ground, roofs) are hypotheses. Deterministic
+    for a given rng.
     """
     rng = rng or np.random.default_rng(0)
     n = len(xyz)

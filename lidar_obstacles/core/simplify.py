@@ -46,6 +46,7 @@ from scipy.spatial import ConvexHull, QhullError, cKDTree
 from lidar_obstacles.config import SimplifyConfig
 from lidar_obstacles.core.interpolate import tin
 from lidar_obstacles.core.kmeans import elbow_kmeans
+from lidar_obstacles.core.metrics import raster_correlation
 from lidar_obstacles.errors import CloudFormatError, ConfigError
 
 
@@ -112,17 +113,15 @@ def _check_xyz(xyz: np.ndarray, what: str) -> np.ndarray:
     return arr
 
 
-def _neighbourhood_pca(xyz: np.ndarray, neighbours: int) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3) unit normals oriented z >= 0 and (N,) surface variation l0 / (l0 + l1 + l2)
-    (0 on a plane, 1/3 for isotropic scatter) of the ``neighbours`` nearest points (the
-    point itself included, as in the paper's Table 2)."""
+def _neighbourhood_pca(xyz: np.ndarray, neighbours: int) -> np.ndarray:
+    """(N, 3) unit normals, oriented z >= 0, of the ``neighbours`` nearest points of each
+    of xyz (N, 3) m (the point itself included, as in the paper's Table 2)."""
     n = len(xyz)
     k = int(min(neighbours, n))
     centred = xyz - xyz.mean(axis=0)  # conditioning: survey coordinates are 1e5-1e6 m
     _, idx = cKDTree(centred).query(centred, k=k, workers=-1)
     idx = np.asarray(idx).reshape(n, k)
     normals = np.empty((n, 3))
-    variation = np.empty(n)
     rows, cols = np.triu_indices(3)
     for lo in range(0, n, _BATCH):
         nb = centred[idx[lo:lo + _BATCH]]
@@ -134,18 +133,14 @@ def _neighbourhood_pca(xyz: np.ndarray, neighbours: int) -> tuple[np.ndarray, np
             s = np.einsum("nk,nk->n", nb[:, :, a], nb[:, :, b])
             cov[:, a, b] = s
             cov[:, b, a] = s
-        evals, evecs = np.linalg.eigh(cov)
-        normals[lo:lo + _BATCH] = evecs[:, :, 0]
-        total = evals.sum(axis=1)
-        variation[lo:lo + _BATCH] = np.where(total > 0, np.maximum(evals[:, 0], 0.0)
-                                             / np.where(total > 0, total, 1.0), 0.0)
+        normals[lo:lo + _BATCH] = np.linalg.eigh(cov)[1][:, :, 0]
     # Airborne surfaces are seen from above, so they face up: z >= 0. Exactly horizontal
     # normals (vertical walls to the last bit) take x >= 0, then y >= 0, so a flip is never
     # left to the sign LAPACK happened to return.
     flip = (normals[:, 2] < 0) | ((normals[:, 2] == 0) & (
         (normals[:, 0] < 0) | ((normals[:, 0] == 0) & (normals[:, 1] < 0))))
     normals[flip] *= -1.0
-    return normals, variation
+    return normals
 
 
 def pca_normals(xyz: np.ndarray, *, neighbours: int) -> np.ndarray:
@@ -165,7 +160,7 @@ def pca_normals(xyz: np.ndarray, *, neighbours: int) -> np.ndarray:
         raise ConfigError(f"pca_normals: neighbours={neighbours} must be >= 1")
     if len(arr) == 0:
         return np.zeros((0, 3))
-    return _neighbourhood_pca(arr, neighbours)[0]
+    return _neighbourhood_pca(arr, neighbours)
 
 
 # --------------------------------------------------------------------------- validation
@@ -196,12 +191,9 @@ def _grid(xy: np.ndarray, cell: float) -> np.ndarray:
 
 
 def _pearson(a: np.ndarray, b: np.ndarray) -> float:
-    ok = np.isfinite(a) & np.isfinite(b)
-    if ok.sum() < 2:
-        return float("nan")
-    a, b = a[ok] - a[ok].mean(), b[ok] - b[ok].mean()
-    den = float(np.sqrt((a @ a) * (b @ b)))
-    return float(a @ b / den) if den > 0 else float("nan")
+    """Pearson r of two rasters over the cells finite in both (NaN: undefined)."""
+    r = raster_correlation(a, b)
+    return float("nan") if r is None else r
 
 
 def tin_raster_correlation(kept_xyz: np.ndarray, all_xyz: np.ndarray, *, cell: float) -> float:
@@ -418,7 +410,7 @@ def simplify(xyz: np.ndarray, *, cfg: SimplifyConfig, intensity: np.ndarray | No
                               timings=timings)
 
     t = time.perf_counter()
-    normals, _variation = _neighbourhood_pca(pts, cfg.neighbours)
+    normals = _neighbourhood_pca(pts, cfg.neighbours)
     timings["normals"] = time.perf_counter() - t
     t = time.perf_counter()
     with warnings.catch_warnings():

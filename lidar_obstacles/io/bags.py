@@ -14,16 +14,19 @@ import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 from lidar_obstacles.errors import BagError
+
+if TYPE_CHECKING:  # rosbags is imported on first use
+    from rosbags.typesys.store import Typestore
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 ODOMETRY = "nav_msgs/msg/Odometry"
 CRS_TOPIC = "/survey_crs"  # std_msgs/String, "EPSG:nnnn" or WKT, written by las2bag
 
 
-def typestore():
+def typestore() -> Typestore:
     """The ROS 2 Jazzy typestore of rosbags (cached)."""
     global _TYPESTORE
     if _TYPESTORE is None:

@@ -53,7 +53,7 @@ class DemBuilderNode(PipelineNode):
 
         grid = self.stage.grid()
         path = self.cfg.export.path
-        if grid is None or grid.elevation.size == 0:
+        if grid.elevation.size == 0:
             response.success, response.message = False, "no DEM yet: no ground received"
             return response
         try:

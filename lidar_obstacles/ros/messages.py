@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import array
+from collections.abc import Iterable
+from typing import TYPE_CHECKING
 
 import numpy as np
 from builtin_interfaces.msg import Duration, Time
@@ -13,6 +15,10 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from lidar_obstacles.core.classes import CLASS_COLOURS, CLASS_NAMES
 from lidar_obstacles.io.pointcloud2 import make_pointcloud2
+
+if TYPE_CHECKING:
+    from lidar_obstacles.core.dem import DemGrid
+    from lidar_obstacles.core.obstacles import ObstacleObject
 
 
 def header(stamp_ns: int, frame_id: str) -> Header:
@@ -30,8 +36,14 @@ def cloud(points: np.ndarray, hdr: Header) -> PointCloud2:
     return make_pointcloud2(points, header=hdr, msg_cls=PointCloud2, field_cls=PointField)
 
 
-def markers(objects, hdr: Header, lifetime_s: float = 0.0) -> MarkerArray:
-    """One box and one text label per obstacle object; the first marker clears old ones."""
+def markers(objects: Iterable[ObstacleObject], hdr: Header,
+            lifetime_s: float = 0.0) -> MarkerArray:
+    """One box and one text label per obstacle object; the first marker clears old ones.
+
+    objects: boxes with min_xyz / max_xyz (3,) metres in hdr.frame_id, heights in metres.
+    Each gives a CUBE (id 2 * obj.id, at least 0.1 m a side) and a TEXT_VIEW_FACING label
+    (id 2 * obj.id + 1, 1 m above the box). lifetime_s: seconds, 0 = until replaced.
+    """
     out = [Marker(header=hdr, action=Marker.DELETEALL)]
     life = Duration(sec=int(lifetime_s), nanosec=int((lifetime_s % 1) * 1e9))
     for obj in objects:
@@ -63,16 +75,24 @@ def _map_meta(stamp: Time, rows: int, cols: int, origin, resolution: float) -> M
                                    orientation=Quaternion(w=1.0)))
 
 
-def occupancy(cells: np.ndarray, origin, resolution: float, hdr: Header) -> OccupancyGrid:
-    """nav_msgs/OccupancyGrid from (rows, cols) int8 cells (row = y from origin)."""
+def occupancy(cells: np.ndarray, origin: np.ndarray, resolution: float,
+              hdr: Header) -> OccupancyGrid:
+    """nav_msgs/OccupancyGrid from (rows, cols) int8 cells (row = y from origin).
+
+    cells: 0-100 occupancy, -1 unknown. origin: (2,) x, y of the lower-left corner of cell
+    (0, 0), metres. resolution: cell edge, metres.
+    """
     rows, cols = cells.shape
     return OccupancyGrid(header=hdr, info=_map_meta(hdr.stamp, rows, cols, origin, resolution),
                          data=array.array("b", np.ascontiguousarray(cells, np.int8).tobytes()))
 
 
-def dem_messages(grid, hdr: Header) -> tuple[PointCloud2, Image, MapMetaData]:
+def dem_messages(grid: DemGrid, hdr: Header) -> tuple[PointCloud2, Image, MapMetaData]:
     """`dem` (organized cloud x y z interpolated), `dem_image` (32FC1) and `dem_info`.
 
+    grid: elevation (rows, cols) metres (NaN unknown), interpolated (rows, cols) uint8,
+    origin (2,) metres, resolution metres. The cloud is (rows, cols) points of float32
+    x, y, z (metres) and uint8 interpolated; the image rows * cols float32 elevations.
     Row r, column c of all three is the cell whose centre is
     origin + ((c + 0.5) * resolution, (r + 0.5) * resolution).
     """

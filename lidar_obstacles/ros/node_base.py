@@ -1,6 +1,7 @@
-"""The frame both nodes share: parameters from the schema, input QoS that follows the
-publishers, optional odometry, diagnostics, throttled warnings for rejected clouds, and the
-Jazzy-style main with clean shutdown."""
+"""The frame the three nodes (obstacle_detector, dem_builder, cloud_simplifier) share:
+parameters from the schema, input QoS that follows the publishers, optional odometry,
+diagnostics, throttled warnings for rejected clouds, and the Jazzy-style main with clean
+shutdown."""
 from __future__ import annotations
 
 import bisect

@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from lidar_obstacles.config import (CloudSimplifierConfig, DemBuilderConfig, NodeInputConfig,
+from lidar_obstacles.config import (CloudSimplifierConfig, DemBuilderConfig,
                                     ObstacleDetectorConfig)
 from lidar_obstacles.core.arrays import all_columns
 from lidar_obstacles.core.pipeline import (DemPipeline, GroundStep, ObstacleDetector,
@@ -19,6 +20,9 @@ from lidar_obstacles.core.pipeline import (DemPipeline, GroundStep, ObstacleDete
 from lidar_obstacles.errors import CloudFormatError
 from lidar_obstacles.io.pointcloud2 import append_fields, read_points, select_points, xyz_of
 from lidar_obstacles.ros import messages
+
+if TYPE_CHECKING:
+    from lidar_obstacles.core.dem import DemGrid
 
 
 @dataclass(frozen=True)
@@ -78,8 +82,10 @@ def prepare(msg, *, keep_non_finite: bool, max_points: int, pose: Pose | None,
     return Prepared(points, xyz, messages.stamp_ns_of(msg.header), frame)
 
 
-def prepare_for(msg, cfg: NodeInputConfig, pose: Pose | None) -> tuple[Prepared, np.ndarray]:
-    """`prepare` with a node's input settings, and which points are finite, (N,) bool."""
+def prepare_for(msg, cfg: ObstacleDetectorConfig | CloudSimplifierConfig, pose: Pose | None
+                ) -> tuple[Prepared, np.ndarray]:
+    """`prepare` with the input settings of a node that publishes points, and which points
+    are finite, (N,) bool."""
     prep = prepare(msg, keep_non_finite=cfg.input.keep_non_finite,
                    max_points=cfg.input.max_points, pose=pose, transform=cfg.use_odometry)
     return prep, all_columns(np.isfinite(prep.xyz))
@@ -235,13 +241,14 @@ class DemStage:
         return {"points_in": len(ground_xyz), "timings": timings,
                 "seconds": time.perf_counter() - t0}
 
-    def grid(self):
+    def grid(self) -> DemGrid:
+        """The current DEM (its empty cells near new data filled first)."""
         return self.pipeline.dem.snapshot()
 
     def dem_outputs(self, stamp_ns: int | None = None) -> list[tuple[str, object]]:
         """`dem`, `dem_image`, `dem_info` of the current grid (empty list before any data)."""
         grid = self.grid()
-        if grid is None or grid.elevation.size == 0:
+        if grid.elevation.size == 0:
             return []
         hdr = messages.header(self.last_stamp_ns if stamp_ns is None else stamp_ns,
                               self.frame_id)
