@@ -131,9 +131,8 @@ def protocol(files: list[str], max_ground: int, cfg: DemBuilderConfig) -> tuple[
             runs["rbfnn_fine"] = timed(lambda: interpolate(
                 "rbfnn", train[:, :2], train[:, 2], check[:, :2], rbfnn_cfg=fine))
             if gi is not None:
-                icfg = RbfnnConfig(use_intensity=True)
                 runs["rbfnn+I"] = timed(lambda: interpolate(
-                    "rbfnn", train[:, :2], train[:, 2], check[:, :2], rbfnn_cfg=icfg,
+                    "rbfnn", train[:, :2], train[:, 2], check[:, :2],
                     intensity=gi[t.keep], query_intensity=gi[t.check]))
             # The anchors get the coincident samples merged as ours do (ISPRS has
             # repeated XY, which makes scipy's RBF system singular).

@@ -101,3 +101,22 @@ def test_hillshade_png(tmp_path):
     path = write_hillshade_png(tmp_path / "dem.png", grid)
     with Image.open(path) as img:
         assert img.size == (40, 30) and img.mode == "RGBA"
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="Linux /proc only")
+def test_file_mode_follows_umask_without_changing_it(tmp_path, monkeypatch):
+    """The mode is what open() would give under the umask of the moment, and the umask is
+    read from /proc, never set: setting it (even back at once) races with other threads."""
+    old = os.umask(0o027)
+    try:
+        real_umask, calls = os.umask, []
+        monkeypatch.setattr(os, "umask", lambda mask: calls.append(mask) or real_umask(mask))
+        tif = write_geotiff(tmp_path / "dem.tif", _grid(), crs_epsg=None)
+        png = write_hillshade_png(tmp_path / "dem.png", _grid())
+        monkeypatch.undo()
+        assert calls == []
+        assert stat.S_IMODE(tif.stat().st_mode) == 0o640  # 0o666 & ~0o027
+        assert stat.S_IMODE(png.stat().st_mode) == 0o640
+        assert os.umask(0o027) == 0o027  # unchanged afterwards
+    finally:
+        os.umask(old)

@@ -174,12 +174,12 @@ def test_rbfnn_reaches_its_goal_on_a_smooth_surface():
     assert capped.neurons == 5 and capped.mse > 1e-3
 
 
-def test_rbfnn_uses_intensity_when_asked():
+def test_rbfnn_uses_intensity_when_given():
     xy = _samples(1000, seed=6)
     inten = np.where(xy[:, 0] > 25, 100.0, 10.0)
     z = 0.01 * inten + 0.0 * xy[:, 1]
     q = np.array([[10.0, 10.0], [40.0, 10.0]])
-    cfg = RbfnnConfig(goal=1e-4, use_intensity=True)
+    cfg = RbfnnConfig(goal=1e-4)
     out = interpolate("rbfnn", xy, z, q, rbfnn_cfg=cfg, intensity=inten,
                       query_intensity=np.array([10.0, 100.0]))
     assert out == pytest.approx([0.1, 1.0], abs=0.05)

@@ -156,6 +156,15 @@ def test_nodes_process_a_played_flight(flight, ros_node, tmp_path):
         res = _call(ros_node, Trigger, f"{NS}/save_dem", Trigger.Request())
         assert res.success, res.message
         assert (tmp_path / "live_dem.tif").stat().st_size > 0
+
+        def dem_status() -> dict[str, str]:  # the DEM builder's newest diagnostics
+            return {kv.key: kv.value for d in got["diag"] for s in d.status
+                    if s.name.startswith("dem_builder") for kv in s.values}
+
+        # the DEM measured at the ground points it held out (`thinning.check_points`)
+        assert _spin_until(ros_node, lambda: dem_status().get("check_n", "0") != "0", 10)
+        assert int(dem_status()["check_n"]) >= 100, dem_status()
+        assert 0.0 < float(dem_status()["check_rmse_m"]) < 0.3, dem_status()
     finally:
         for s in subs:
             ros_node.destroy_subscription(s)

@@ -139,8 +139,13 @@ def thin(xyz: np.ndarray, *, cfg: ThinningConfig,
     """
     gen = np.random.default_rng(cfg.seed if rng is None else rng)
     n = len(xyz)
-    order = gen.permutation(n)
     n_check = min(cfg.check_points, max(n - 3, 0))
+    if cfg.keep >= 1.0:  # (the node's default) only the check points to draw: no shuffle
+        check = np.sort(gen.choice(n, n_check, replace=False))
+        keep = np.ones(n, bool)
+        keep[check] = False
+        return Thinning(keep=np.flatnonzero(keep), check=check)
+    order = gen.permutation(n)
     check, rest = order[:n_check], order[n_check:]
     n_keep = int(round(cfg.keep * len(rest)))
     if cfg.method == "random" or n_keep >= len(rest):
@@ -152,6 +157,35 @@ def thin(xyz: np.ndarray, *, cfg: ThinningConfig,
         keys = np.log(gen.random(len(rest))) / weight
         keep = rest[np.argpartition(-keys, n_keep - 1)[:n_keep]] if n_keep > 0 else rest[:0]
     return Thinning(keep=np.sort(keep), check=np.sort(check))
+
+
+class CheckPoints:
+    """Ground points held out of a rolling DEM to measure it (the paper's check points),
+    the newest ``capacity`` of them: (C, 3) float64 metres."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = int(capacity)
+        self.xyz = np.zeros((0, 3))
+
+    def add(self, xyz: np.ndarray) -> None:
+        """Hold out xyz (K, 3) m too; the oldest go beyond ``capacity``."""
+        if self.capacity > 0:
+            self.xyz = np.concatenate([self.xyz, xyz])[-self.capacity:]
+
+    def accuracy(self, grid: DemGrid) -> dict[str, float | int | None]:
+        """RMSE (m) and R^2 of the grid's elevation (nearest cell) at the check points
+        inside it with a known elevation, and how many that is (check_n)."""
+        if len(self.xyz) == 0 or grid.elevation.size == 0:
+            return {"check_rmse_m": None, "check_r2": None, "check_n": 0}
+        rows, cols = grid.elevation.shape
+        c = np.floor((self.xyz[:, 0] - grid.origin[0]) / grid.resolution).astype(np.int64)
+        r = np.floor((self.xyz[:, 1] - grid.origin[1]) / grid.resolution).astype(np.int64)
+        inside = (c >= 0) & (c < cols) & (r >= 0) & (r < rows)
+        est = np.full(len(self.xyz), np.nan)
+        est[inside] = grid.elevation[r[inside], c[inside]]
+        rmse, r2, n = accuracy(est, self.xyz[:, 2])
+        return {"check_rmse_m": None if n == 0 else rmse,
+                "check_r2": None if n == 0 or not np.isfinite(r2) else r2, "check_n": n}
 
 
 # --------------------------------------------------------------------------- ground blunders

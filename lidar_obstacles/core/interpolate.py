@@ -555,9 +555,10 @@ def interpolate(method: str, xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray
     """Interpolate samples (xy (N, 2) metres, z (N,) metres) at query_xy (M, 2) metres.
 
     method: one of METHODS. Returns (M,) float64, NaN where the method is undefined
-    (outside the hull for ``tin``, no samples at all). ``rbfnn`` uses intensity (N,) as a
-    third input when ``rbfnn_cfg.use_intensity`` and intensity is given; the queries' own
-    intensity (M,) is then needed too (missing: the nearest sample's); it trains on at
+    (outside the hull for ``tin``, no samples at all). ``rbfnn`` takes intensity (N,),
+    when given, as a third input, as the paper did; the queries' own intensity (M,) is
+    then needed too (missing: the nearest sample's). A DEM's empty cells have no
+    intensity, so only check points can be interpolated this way. ``rbfnn`` trains on at
     most ``rbfnn_cfg.max_train`` random samples (drawn with ``rng``). Raises
     CloudFormatError for bad shapes or an unknown method. ``variogram``: for ``kriging``,
     use this one instead of fitting one to the samples (see :func:`kriging_variogram`).
@@ -566,7 +567,7 @@ def interpolate(method: str, xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray
         raise CloudFormatError(f"interpolate: unknown method {method!r}; expected one of "
                                f"{', '.join(METHODS)}")
     xy, z, q = _check(xy, z, query_xy)
-    use_int = method == "rbfnn" and rbfnn_cfg.use_intensity and intensity is not None
+    use_int = method == "rbfnn" and intensity is not None
     if use_int:
         xy, z, inten = merge_coincident(xy, z, extra=np.asarray(intensity, dtype=np.float64))
     else:

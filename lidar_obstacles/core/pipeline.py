@@ -22,6 +22,8 @@ from lidar_obstacles.core.classes import GROUND, NOISE
 if TYPE_CHECKING:
     from lidar_obstacles.core.ground import GroundResult
 
+# The rolling DEM is measured at the check points of the last this many messages.
+CHECK_MESSAGES = 20
 TOWER_MEMORY_SECONDS = 60.0  # s: how long a recognised tower is remembered
 TOWER_MEMORY_SIZE = 256  # towers remembered at most (bounded memory on any flight)
 TOWER_MEMORY_RADIUS = 50.0  # m: remembered towers this far outside a cloud are offered
@@ -298,18 +300,21 @@ class DemPipeline:
     """Ground selection plus the rolling DEM, for the `dem_builder` node and `replay`."""
 
     def __init__(self, cfg: DemBuilderConfig | None = None) -> None:
-        from lidar_obstacles.core.dem import RollingDem
+        from lidar_obstacles.core.dem import CheckPoints, RollingDem
 
         self.cfg = cfg or DemBuilderConfig()
         self.dem = RollingDem(self.cfg)
         self._ground: StreamingGround | None = None  # the `detector` source's, on first use
+        self._thin_rng = np.random.default_rng(self.cfg.thinning.seed)
+        self.checks = CheckPoints(CHECK_MESSAGES * self.cfg.thinning.check_points)
 
     def reconfigure(self, cfg: DemBuilderConfig) -> None:
-        from lidar_obstacles.core.dem import RollingDem
+        from lidar_obstacles.core.dem import CheckPoints, RollingDem
 
-        grid_changed = (cfg.dem.resolution != self.cfg.dem.resolution
-                        or cfg.dem.extent != self.cfg.dem.extent
-                        or cfg.dem.max_cells != self.cfg.dem.max_cells)
+        old = self.cfg
+        grid_changed = (cfg.dem.resolution != old.dem.resolution
+                        or cfg.dem.extent != old.dem.extent
+                        or cfg.dem.max_cells != old.dem.max_cells)
         self.cfg = cfg
         if grid_changed:
             self.dem = RollingDem(cfg)
@@ -317,6 +322,10 @@ class DemPipeline:
             self.dem.cfg = cfg  # interpolation settings apply from the next update
         if self._ground is not None:
             self._ground.reconfigure(cfg)
+        if cfg.thinning.seed != old.thinning.seed:
+            self._thin_rng = np.random.default_rng(cfg.thinning.seed)
+        if cfg.thinning.check_points != old.thinning.check_points:
+            self.checks = CheckPoints(CHECK_MESSAGES * cfg.thinning.check_points)
 
     def ground_of(self, xyz: np.ndarray, *, stamp: float,
                   intensity: np.ndarray | None) -> np.ndarray:
@@ -349,12 +358,24 @@ class DemPipeline:
                    height_above_ground: np.ndarray | None = None) -> dict[str, float]:
         """Add ground points (G, 3) float64 metres found elsewhere (the obstacle detector's,
         in `replay`) to the rolling DEM; with their height above the detector's surface
-        (G,) m, only the bare earth (:func:`bare_earth`). Returns timings in seconds."""
+        (G,) m, only the bare earth (:func:`bare_earth`). Then `thinning.check_points` of
+        them are held out (`checks`, to measure the DEM: :meth:`check_accuracy`) and
+        `thinning.keep` of the rest go into the DEM. Returns timings in seconds."""
+        from lidar_obstacles.core.dem import thin
+
         t0 = time.perf_counter()
         ground_xyz = np.asarray(ground_xyz, np.float64).reshape(-1, 3)
         if height_above_ground is not None:
             ground_xyz = ground_xyz[bare_earth(ground_xyz, height_above_ground, self.cfg.dem)]
+        if self.cfg.thinning.keep < 1.0 or self.cfg.thinning.check_points > 0:
+            thinned = thin(ground_xyz, cfg=self.cfg.thinning, rng=self._thin_rng)
+            self.checks.add(ground_xyz[thinned.check])
+            ground_xyz = ground_xyz[thinned.keep]
         vehicle_xy = None if vehicle_xyz is None else np.asarray(vehicle_xyz, float)[:2]
         self.dem.update(ground_xyz, vehicle_xy, stamp)
         t1 = time.perf_counter()
         return {"ground": 0.0, "update": t1 - t0, "total": t1 - t0}
+
+    def check_accuracy(self) -> dict[str, float | int | None]:
+        """The current DEM at the held-out check points: check_rmse_m, check_r2, check_n."""
+        return self.checks.accuracy(self.dem.snapshot())

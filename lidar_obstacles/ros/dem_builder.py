@@ -48,6 +48,12 @@ class DemBuilderNode(PipelineNode):
         for topic, out in self.stage.dem_outputs():
             self.pubs[topic].publish(out)
 
+    def extra_diagnostics(self) -> dict[str, str]:
+        """The DEM at its held-out check points (`thinning.check_points`), as of the last
+        publish: check_rmse_m, check_r2 ("-" until known) and check_n."""
+        return {k: ("-" if v is None else f"{v:.4g}" if isinstance(v, float) else str(v))
+                for k, v in self.stage.check_stats.items()}
+
     def _save_dem(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         from lidar_obstacles.io.geotiff import parse_crs, write_geotiff
 

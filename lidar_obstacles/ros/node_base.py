@@ -180,6 +180,7 @@ class PipelineNode(Node):
         values = {"rate_hz": f"{rate:.2f}", "latency_p50_ms": f"{1e3 * np.percentile(lat, 50):.1f}",
                   "latency_p95_ms": f"{1e3 * np.percentile(lat, 95):.1f}"}
         values.update({k: str(v) for k, v in self.stats.items()})
+        values.update(self.extra_diagnostics())
         values.update({f"rejected: {k}": str(v) for k, v in self.reject_reasons.items()})
         bad = self.stats["rejected"] + self.stats["dropped_no_pose"]
         status = DiagnosticStatus(
@@ -188,6 +189,11 @@ class PipelineNode(Node):
             message=f"{bad} clouds dropped" if bad else "ok",
             values=[KeyValue(key=k, value=v) for k, v in values.items()])
         self.diag_pub.publish(DiagnosticArray(header=self._diag_header(), status=[status]))
+
+    def extra_diagnostics(self) -> dict[str, str]:
+        """Node-specific values for the diagnostics (the DEM's accuracy at its check
+        points); none here."""
+        return {}
 
     def _diag_header(self):
         from std_msgs.msg import Header

@@ -198,6 +198,8 @@ class DemStage:
         self.pipeline = DemPipeline(cfg)
         self.frame_id = "map"
         self.last_stamp_ns = 0
+        # the DEM at its held-out check points, as of the last `dem_outputs`
+        self.check_stats: dict[str, float | int | None] = {}
 
     def reconfigure(self, cfg: DemBuilderConfig) -> None:
         self.cfg = cfg
@@ -246,8 +248,10 @@ class DemStage:
         return self.pipeline.dem.snapshot()
 
     def dem_outputs(self, stamp_ns: int | None = None) -> list[tuple[str, object]]:
-        """`dem`, `dem_image`, `dem_info` of the current grid (empty list before any data)."""
+        """`dem`, `dem_image`, `dem_info` of the current grid (empty list before any data);
+        `check_stats` are measured on that grid."""
         grid = self.grid()
+        self.check_stats = self.pipeline.checks.accuracy(grid)
         if grid.elevation.size == 0:
             return []
         hdr = messages.header(self.last_stamp_ns if stamp_ns is None else stamp_ns,
