@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any, Iterator, Mapping, TypeVar
 
 from lidar_obstacles.errors import ConfigError
+from lidar_obstacles.io.atomic import atomic_write_text
 
 T = TypeVar("T")
 
@@ -698,7 +699,7 @@ def write_config_files(folder: str | Path) -> list[Path]:
         header = (f"# Parameters of `{node}`, generated from lidar_obstacles/config.py\n"
                   f"# (python -m lidar_obstacles.config). Each line: default, then\n"
                   f"# description [unit] and range. Load with --ros-args --params-file.\n")
-        path.write_text(header + dump_ros_yaml(cls(), node))
+        atomic_write_text(path, header + dump_ros_yaml(cls(), node))
         written.append(path)
     return written
 
@@ -708,5 +709,5 @@ if __name__ == "__main__":
     for written_path in write_config_files("config"):
         print(written_path)
     Path("docs").mkdir(exist_ok=True)
-    Path("docs/parameters.md").write_text(markdown_tables())
+    atomic_write_text("docs/parameters.md", markdown_tables())
     print("docs/parameters.md")

@@ -16,8 +16,6 @@ from __future__ import annotations
 import base64
 import html
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
@@ -25,6 +23,7 @@ import numpy as np
 
 from lidar_obstacles.core.metrics import jsonable, latency_stats
 from lidar_obstacles.errors import CloudFormatError, LidarObstaclesError
+from lidar_obstacles.io.atomic import atomic_write, atomic_write_text
 
 DPI = 150
 """Resolution of every PNG; a figure of W x H inches is (W * DPI) x (H * DPI) pixels."""
@@ -72,24 +71,11 @@ def _figure(width_in: float, height_in: float):
     return fig
 
 
-def _atomic_write_bytes(path: Path, write) -> Path:
-    """Call ``write(file)`` on a temporary file next to ``path``, then rename it in place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            write(fh)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
 def _save(fig, path: str | Path) -> Path:
     """Write the figure as PNG at :data:`DPI`, atomically; returns the path."""
-    return _atomic_write_bytes(Path(path), lambda fh: fig.savefig(fh, format="png", dpi=DPI))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=DPI))
 
 
 def _offset(values: np.ndarray) -> float:
@@ -884,6 +870,7 @@ def write_report(
     Raises LidarObstaclesError when an image is missing.
     """
     out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
     clean = jsonable(dict(metrics))
     figures = []
     for key, p in images.items():
@@ -920,5 +907,5 @@ def write_report(
         + "</body></html>\n"
     )
     text = json.dumps(clean, indent=2, allow_nan=False) + "\n"
-    _atomic_write_bytes(out / "metrics.json", lambda fh: fh.write(text.encode("utf-8")))
-    return _atomic_write_bytes(out / "report.html", lambda fh: fh.write(doc.encode("utf-8")))
+    atomic_write_text(out / "metrics.json", text)
+    return atomic_write_text(out / "report.html", doc)

@@ -11,7 +11,6 @@ load; the summary reports each parameter's sensitivity and the score on held-out
 """
 from __future__ import annotations
 
-import os
 import re
 import sys
 import time
@@ -31,6 +30,7 @@ from lidar_obstacles.config import (
 )
 from lidar_obstacles.errors import ConfigError
 from lidar_obstacles.evaluate import LabelledInput, _concat, load_input, run_detector
+from lidar_obstacles.io.atomic import atomic_write_text
 
 EARLY_STOP_MARGIN = 0.05  # a candidate this far below the best on the first input stops
 SAFETY_PENALTY = 10.0  # score lost per unit share of wire/tower points put in ground
@@ -195,7 +195,7 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
     if best is None:
         raise ConfigError("the budget ended before a single candidate was scored")
     best_cfg = replace(start, best["params"])
-    _write_atomic(out, "# Written by `lidar-obstacles tune`: the best candidate of "
+    atomic_write_text(out, "# Written by `lidar-obstacles tune`: the best candidate of "
                        f"{len(trials)} on {', '.join(i.name for i in inputs)}.\n"
                   + dump_ros_yaml(best_cfg, "/**"))
     complete = [t for t in trials if not t["stopped_early"]]
@@ -222,9 +222,3 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
                                  "start_score": _mean_score(held_out, start, objective),
                                  "best_score": _mean_score(held_out, best_cfg, objective)}
     return summary
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)

@@ -82,3 +82,16 @@ def test_real_corridor_views(tmp_path):
     ref = c.points["classification"][::20]
     w, h = png_size(R.cloud_views_png(xyz, ref, tmp_path / "v.png", max_points=20_000))
     assert w == 11 * R.DPI and h > 1000
+
+
+def test_report_files_get_the_mode_open_would_give(tmp_path):
+    # written through a 0o600 temporary file, renamed: the mode must still follow the umask
+    import os
+
+    old = os.umask(0o022)
+    try:
+        R.write_report(tmp_path / "r", {"section": {"a": 1}}, {})
+    finally:
+        os.umask(old)
+    for name in ("report.html", "metrics.json"):
+        assert (tmp_path / "r" / name).stat().st_mode & 0o777 == 0o644

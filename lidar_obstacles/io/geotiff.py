@@ -8,11 +8,8 @@ a reader never sees half a file and a failure leaves nothing behind.
 """
 from __future__ import annotations
 
-import os
 import re
-import tempfile
 from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 from typing import Callable
 
@@ -20,6 +17,7 @@ import numpy as np
 
 from lidar_obstacles.core.dem import DemGrid
 from lidar_obstacles.errors import ConfigError, LidarObstaclesError
+from lidar_obstacles.io.atomic import atomic_write
 
 MODEL_PIXEL_SCALE = 33550
 MODEL_TIEPOINT = 33922
@@ -53,55 +51,16 @@ def parse_crs(text: str) -> tuple[int | None, str]:
     raise ConfigError(f"parameter 'export.crs': {text!r} is neither EPSG:<code> nor WKT")
 
 
-def _umask() -> int:
-    """The process umask, read without changing it.
-
-    os.umask can only read the mask by setting it, so a round trip leaves it 0 for a
-    moment, and files another thread creates then (exports run in a ROS service callback
-    beside the executor's threads) would be world-writable. Linux >= 4.7 shows the mask in
-    /proc/self/status; the round trip is the fallback where that line is missing.
-    """
-    try:
-        with open("/proc/self/status", encoding="ascii") as status:
-            for line in status:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
-        pass
-    return _umask_round_trip()
-
-
-@lru_cache(maxsize=1)
-def _umask_round_trip() -> int:
-    """The umask by setting it and back; once per process, so the window is opened once."""
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def _file_mode() -> int:
-    """0o666 minus the process umask: what open() would have given the file (mkstemp's
-    temporary files are 0o600, and the rename keeps that)."""
-    return 0o666 & ~_umask()
-
-
 def _atomic_write(path: str | Path, write: Callable[[str], None]) -> Path:
+    """`atomic_write`, with the problems a user can fix as one ExportError line."""
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise ExportError(f"cannot write {path}: folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-    os.close(fd)
     try:
-        write(tmp)
-        os.chmod(tmp, _file_mode())  # read per file: follows a umask set after import
-        os.replace(tmp, path)
+        return atomic_write(path, lambda tmp: write(str(tmp)))
     except OSError as exc:
         raise ExportError(f"cannot write {path}: {exc}") from None
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
 
 
 def _geokeys(epsg: int | None, citation: str) -> tuple[list[int], str]:

@@ -105,9 +105,9 @@ def write_las_subset(src: str | Path, keep: np.ndarray, out: str | Path) -> int:
     .laz. Atomic: written beside `out` and renamed, so a failure leaves no half file.
     Returns the number of points written. Raises LasError for an unreadable `src`, a
     `keep` of the wrong length, or an output folder that does not exist."""
-    import os
-
     import laspy
+
+    from lidar_obstacles.io.atomic import atomic_write
 
     src, out = Path(src), Path(out)
     if not out.parent.is_dir():
@@ -121,11 +121,5 @@ def write_las_subset(src: str | Path, keep: np.ndarray, out: str | Path) -> int:
         raise LasError(f"{src}: keep mask has {keep.shape} entries for {len(las.points)} points")
     sub = laspy.LasData(las.header)
     sub.points = las.points[keep]
-    tmp = out.with_name(f".{out.name}.partial-{os.getpid()}{out.suffix}")
-    try:
-        sub.write(str(tmp))
-        os.replace(tmp, out)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    atomic_write(out, lambda tmp: sub.write(str(tmp)))  # (LAZ by the suffix, kept)
     return int(keep.sum())
