@@ -293,3 +293,28 @@ def test_cloud_simplifier_node(ros_node):
         ros_node.destroy_publisher(pub)
         rc, log = _stop(node)
     assert rc == 0, log[-3000:]
+
+
+def test_a_bug_on_one_cloud_does_not_take_the_node_down(ros_node, monkeypatch):
+    # in this process: the stage is made to fail as a bug would, on a well-formed cloud
+    from lidar_obstacles.ros.obstacle_detector import ObstacleDetectorNode
+
+    node = ObstacleDetectorNode()
+    try:
+        monkeypatch.setattr(node.stage, "process", lambda *a: 1 / 0)
+        msg = PointCloud2(height=1, width=1, point_step=12, row_step=12, is_dense=True,
+                          data=bytes(12))
+        node._on_points(msg)
+        node._on_points(msg)
+        assert node.stats["failed"] == 2 and node.stats["processed"] == 0
+        assert node.reject_reasons["internal error: ZeroDivisionError"] == 2
+        monkeypatch.undo()  # the next cloud goes through again
+        from lidar_obstacles.ros import messages
+
+        rng = np.random.default_rng(0)
+        pts = np.zeros(2000, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+        pts["x"], pts["y"] = rng.uniform(0, 30, 2000), rng.uniform(0, 30, 2000)
+        node._on_points(messages.cloud(pts, messages.header(10**9, "map")))
+        assert node.stats["processed"] == 1
+    finally:
+        node.destroy_node()

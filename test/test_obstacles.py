@@ -254,3 +254,25 @@ def test_neighbour_pairs_match_a_brute_force_search():
     far_i, _ = neighbour_pairs(query[:, :2], data[:, :2] + 100.0, 1.0)
     empty_i, empty_j = neighbour_pairs(query, data[:0], 1.0)
     assert len(far_i) == len(empty_i) == len(empty_j) == 0
+
+
+def test_a_ring_of_tall_things_is_no_tower_and_no_crash():
+    # two 20 m masts 30 m apart joined by a hedge, beside a corridor with wires: one tall
+    # component whose top's centre lies 15 m from either mast, off every point of it
+    rng = np.random.default_rng(3)
+    xyz, truth = _scene(rng)
+    masts = [np.column_stack([rng.normal(x, 0.2, 400), rng.normal(-40, 0.2, 400),
+                              rng.uniform(0.5, 20, 400)]) for x in (-15.0, 15.0)]
+    # the hedge goes round, 20 m south, so that nothing stands near the masts' middle
+    t = rng.uniform(0, 70, 3000)
+    x = np.where(t < 20, -15.0, np.where(t < 50, t - 35.0, 15.0))
+    y = np.where(t < 20, -40.0 - t, np.where(t < 50, -60.0, t - 110.0))
+    hedge = np.column_stack([x + rng.normal(0, 0.3, len(t)), y + rng.normal(0, 0.3, len(t)),
+                             rng.uniform(0.5, 1.5, len(t))])
+    extra = np.concatenate(masts + [hedge])
+    xyz = np.concatenate([xyz, extra])
+    truth = np.concatenate([truth, np.full(len(extra), 1)])
+    ground = truth == 2
+    res = classify_obstacles(xyz, ground, xyz[:, 2].astype(np.float32), cfg=CFG.obstacles)
+    assert not (res.classes[-len(extra):] == 15).any()
+    assert (res.classes[truth == 15] == 15).mean() > 0.8  # the real towers still are

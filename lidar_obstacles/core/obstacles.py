@@ -542,6 +542,8 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
         top = column_mean(p[h > 0.7 * top_h, :2])
         off_axis = row_norm(p[:, :2] - top)
         column = off_axis < TOWER_RADIUS * top_h
+        if not column.any():
+            continue  # the top's centre lies off every point: a ring of tall things, no mast
         if len(known) and (np.linalg.norm(known[:, :2] - top, axis=1) < known[:, 2]).any():
             # seen whole in an earlier strip: this strip may hold only its legs
             is_tower[local[column]] = True

@@ -8,6 +8,7 @@ import bisect
 import collections
 import sys
 import time
+import traceback
 from typing import Any, Callable
 
 import numpy as np
@@ -95,7 +96,8 @@ class PipelineNode(Node):
         self.create_timer(1.0, self._publish_diagnostics)
         self.create_timer(10.0, release_free_memory)  # flat memory over a long flight
         self.stats: dict[str, Any] = {"received": 0, "processed": 0, "rejected": 0,
-                                      "dropped_no_pose": 0, "points_in": 0, "points_out": 0}
+                                      "dropped_no_pose": 0, "failed": 0, "points_in": 0,
+                                      "points_out": 0}
         self.reject_reasons: collections.Counter[str] = collections.Counter()
         self.latencies: collections.deque[float] = collections.deque(maxlen=200)
         self.recv_times: collections.deque[float] = collections.deque(maxlen=50)
@@ -150,6 +152,14 @@ class PipelineNode(Node):
         except LidarObstaclesError as exc:
             self._reject(str(exc))
             return
+        except Exception as exc:  # noqa: BLE001 - beside a flight stack a bug must not
+            # take the node down: the cloud is dropped, counted and logged with its trace
+            self.stats["failed"] += 1
+            self.reject_reasons[f"internal error: {type(exc).__name__}"] += 1
+            self.get_logger().error(f"failed on a cloud (a bug, please report it):\n"
+                                    f"{traceback.format_exc()}",
+                                    throttle_duration_sec=WARN_THROTTLE_S)
+            return
         self.latencies.append(time.perf_counter() - t0)
         self.stats["processed"] += 1
         self.stats["points_in"] += int(msg.width) * int(msg.height)
@@ -182,9 +192,10 @@ class PipelineNode(Node):
         values.update({k: str(v) for k, v in self.stats.items()})
         values.update(self.extra_diagnostics())
         values.update({f"rejected: {k}": str(v) for k, v in self.reject_reasons.items()})
-        bad = self.stats["rejected"] + self.stats["dropped_no_pose"]
+        bad = self.stats["rejected"] + self.stats["dropped_no_pose"] + self.stats["failed"]
         status = DiagnosticStatus(
-            level=DiagnosticStatus.WARN if bad else DiagnosticStatus.OK,
+            level=(DiagnosticStatus.ERROR if self.stats["failed"] else
+                   DiagnosticStatus.WARN if bad else DiagnosticStatus.OK),
             name=f"{self.get_name()}: processing", hardware_id=self.get_fully_qualified_name(),
             message=f"{bad} clouds dropped" if bad else "ok",
             values=[KeyValue(key=k, value=v) for k, v in values.items()])
