@@ -72,6 +72,36 @@ def test_ros1_bag_is_read(tmp_path):
         assert read_points(reader.deserialize(record)).tobytes() == pts.tobytes()
 
 
+def test_a_ros1_bag_with_a_topic_without_header_replays(tmp_path):
+    # real ROS 1 bags carry /tf (tf2_msgs/TFMessage) and strings: no header to read
+    from rosbags.rosbag1 import Writer as Ros1Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from lidar_obstacles.ros.offline import replay
+
+    ros1 = get_typestore(Stores.ROS1_NOETIC)
+    Header = ros1.types["std_msgs/msg/Header"]
+    Time = ros1.types["builtin_interfaces/msg/Time"]
+    String = ros1.types["std_msgs/msg/String"]
+    path = tmp_path / "survey.bag"
+    with Ros1Writer(path) as w:
+        clouds = w.add_connection("/points", POINTCLOUD2, typestore=ros1)
+        note = w.add_connection("/note", "std_msgs/msg/String", typestore=ros1)
+        w.write(note, 5 * 10**8, ros1.serialize_ros1(String(data="hello"), "std_msgs/msg/String"))
+        for i in range(3):
+            pts = _points(3000, seed=i)
+            pts["x"], pts["y"] = pts["x"] * 10 + 20 * i, pts["y"] * 10
+            pts["z"] *= 0.02
+            msg = make_pointcloud2(
+                pts, header=Header(seq=i, stamp=Time(sec=1 + i, nanosec=0), frame_id="map"),
+                msg_cls=ros1.types[POINTCLOUD2], field_cls=ros1.types["sensor_msgs/msg/PointField"])
+            w.write(clouds, (1 + i) * 10**9, ros1.serialize_ros1(msg, POINTCLOUD2))
+    summary = replay(path, tmp_path / "out", with_dem=False)
+    assert summary["messages"] == 3
+    with BagReader(tmp_path / "out") as reader:
+        assert reader.count(["/obstacles"]) == reader.count(["/ground"]) == 3
+
+
 def test_failed_write_leaves_nothing_and_keeps_the_old_bag(tmp_path):
     _write(tmp_path / "bag", [_points(10)])
     before = sorted(p.name for p in (tmp_path / "bag").iterdir())

@@ -620,6 +620,8 @@ def cdr_of_record(reader: BagReader, record) -> bytes | None:
     odometry are rebuilt as ROS 2 messages; other ROS 1 types are not carried (None)."""
     if not record.ros1:
         return record.raw
+    if record.msgtype not in (POINTCLOUD2, ODOMETRY):
+        return None  # (and never deserialized: a String or a tf message has no header)
     from lidar_obstacles.io.pointcloud2 import read_points
 
     msg = reader.deserialize(record)
