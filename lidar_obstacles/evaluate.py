@@ -137,9 +137,10 @@ def _labelled_clouds(reader, topic: str | None, cfg: NodeInputConfig) -> list[La
 
 
 def run_detector(inp: LabelledInput, cfg: ObstacleDetectorConfig, *,
-                 progress: bool = False) -> list[float]:
+                 progress: bool = False, deadline: float | None = None) -> list[float]:
     """Run the obstacle detector over every cloud of `inp` in order (one pipeline object, so
-    the ground context streams as in the node); fills `predicted`. Returns seconds per cloud."""
+    the ground context streams as in the node); fills `predicted`. Returns seconds per cloud.
+    TimeoutError when time.monotonic() passes `deadline` between two clouds."""
     from lidar_obstacles.core.pipeline import ObstacleDetector
 
     det = ObstacleDetector(cfg)
@@ -152,6 +153,9 @@ def run_detector(inp: LabelledInput, cfg: ObstacleDetectorConfig, *,
 
         clouds = tqdm(clouds, desc=f"detect {inp.name}", disable=None, file=sys.stderr)
     for c in clouds:
+        if deadline is not None and time.monotonic() > deadline:
+            raise TimeoutError(f"out of time after {len(latencies)} of {len(inp.clouds)} "
+                               f"clouds of {inp.name}")
         t0 = time.perf_counter()
         res = det.process(c.xyz, stamp=c.stamp, vehicle_xyz=c.vehicle)
         latencies.append(time.perf_counter() - t0)

@@ -118,11 +118,13 @@ def _dimension(name, low, high, choices, log, integer) -> Dimension:
     return Dimension(name, float(low), float(high), log=bool(log), integer=integer)
 
 
-def score_input(inp: LabelledInput, cfg: ObstacleDetectorConfig, objective: str) -> dict:
-    """Run the detector on one input and score it (higher is better)."""
+def score_input(inp: LabelledInput, cfg: ObstacleDetectorConfig, objective: str, *,
+                deadline: float | None = None) -> dict:
+    """Run the detector on one input and score it (higher is better). TimeoutError when
+    time.monotonic() passes `deadline` before the input is done."""
     from lidar_obstacles.core.metrics import evaluate_classes
 
-    run_detector(inp, cfg)
+    run_detector(inp, cfg, deadline=deadline)
     _, ref, pred = _concat(inp)
     m = evaluate_classes(ref, pred)
     go = m["ground_object"]
@@ -173,15 +175,21 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
                 continue  # a combination the schema rejects is simply not a candidate
             scores = []
             stopped = False
-            for i, inp in enumerate(inputs):
-                scores.append(score_input(inp, cfg, objective)["score"])
-                if i == 0:
-                    if scores[0] < best_first - EARLY_STOP_MARGIN:
+            # The budget holds inside a candidate too (between clouds), except for the
+            # first, the start: there must be one scored candidate to write.
+            try:
+                for i, inp in enumerate(inputs):
+                    scores.append(score_input(inp, cfg, objective,
+                                              deadline=t_end if trials else None)["score"])
+                    if i == 0:
+                        if scores[0] < best_first - EARLY_STOP_MARGIN:
+                            stopped = True
+                            break
+                    if time.monotonic() > t_end and best is not None:
                         stopped = True
                         break
-                if time.monotonic() > t_end and best is not None:
-                    stopped = True
-                    break
+            except TimeoutError:
+                break  # the budget ran out inside this candidate: it is not scored
             trial = {"params": updates, "score": float(np.mean(scores)),
                      "first_input_score": scores[0], "stopped_early": stopped}
             trials.append(trial)

@@ -114,3 +114,18 @@ def test_tune_rejects_bad_space(tmp_path):
                           str(data_file("isprs/samp51-utm.laz")), "--space", str(space)],
                          cwd=REPO, capture_output=True, text=True, timeout=120)
     assert res.returncode == 2 and "ransac.distance_threshold" in res.stderr
+
+
+def test_run_detector_stops_at_its_deadline_between_clouds(tmp_path):
+    # `tune --budget` holds inside a candidate: the detector stops between two clouds
+    import time
+
+    from lidar_obstacles.config import ObstacleDetectorConfig
+    from lidar_obstacles.evaluate import load_input, run_detector
+
+    run_cli("simulate", tmp_path / "f", "--duration", "0.3", "--seed", "1")
+    inp = load_input(tmp_path / "f")
+    with pytest.raises(TimeoutError, match="after 0 of 3 clouds"):
+        run_detector(inp, ObstacleDetectorConfig(), deadline=time.monotonic() - 1.0)
+    assert len(run_detector(inp, ObstacleDetectorConfig(),
+                            deadline=time.monotonic() + 3600.0)) == 3
