@@ -229,11 +229,31 @@ def test_runtime_parameters_and_malformed_clouds(ros_node):
     assert "dropped a cloud" in log and "row_step" in log
 
 
-def test_bad_parameter_at_start_exits_2():
-    proc = _start("lidar_obstacles.ros.obstacle_detector", "-p", "tiling.size:=-5.0")
+@pytest.mark.parametrize("args, expected", [
+    (["-p", "tiling.size:=-5.0"], "tiling.size"),  # out of range
+    (["-p", "tiling.sise:=40.0"], "unknown parameter 'tiling.sise'"),  # a typo
+    (["--params-file", "/nonexistent.yaml"], "Couldn't parse params file"),
+])
+def test_bad_parameter_at_start_exits_2(args, expected):
+    proc = _start("lidar_obstacles.ros.obstacle_detector", *args)
     rc, log = _stop(proc) if proc.wait(timeout=60) is None else (proc.returncode, proc.stdout.read())
     assert rc == 2, log
-    assert "tiling.size" in log
+    assert expected in log
+    assert "Traceback" not in log
+
+
+def test_a_shared_params_file_with_the_other_nodes_parameters_is_fine(tmp_path):
+    # one file for both nodes (what `tune` writes is loaded by both): no typo, no error
+    params = tmp_path / "both.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    dem.interpolation: tin\n"
+                      "    obstacles.min_height: 0.5\n")
+    proc = _start("lidar_obstacles.ros.obstacle_detector", "--params-file", str(params))
+    try:
+        assert proc.wait(timeout=5) is None
+    except subprocess.TimeoutExpired:
+        pass  # still running: it started
+    rc, log = _stop(proc)
+    assert rc == 0 and "ready" in log, log
 
 
 def test_cloud_simplifier_node(ros_node):

@@ -231,6 +231,8 @@ def test_export_dem_lands_on_survey_coordinates(tmp_path):
     (["replay", "/nonexistent/bag", "OUT"], "bag not found"),
     (["las2bag", "/nonexistent.laz", "OUT"], "LAS file not found"),
     (["export-dem", "/nonexistent/bag", "OUT.tif"], "bag not found"),
+    (["simulate", "OUT", "--scene", "moon"], "invalid choice: 'moon'"),  # a usage mistake
+    (["demo", "--duration", "-1"], "must be positive"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args, expected, tmp_path):
     res = cli_subprocess(*[a.replace("OUT", str(tmp_path / "o")) for a in args])

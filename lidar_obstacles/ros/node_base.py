@@ -215,10 +215,17 @@ class PipelineNode(Node):
 def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
     """Jazzy-style main: init, spin, and on SIGINT/SIGTERM destroy the node and shut down.
 
-    A bad parameter ends with one line on stderr and exit status 2.
+    A bad parameter (out of range, unknown to every node, or a params file rcl cannot
+    read) ends with one line on stderr and exit status 2.
     """
+    from rclpy._rclpy_pybind11 import RCLError
+
     single_threaded_blas()
-    rclpy.init(args=args if args is not None else sys.argv)
+    try:
+        rclpy.init(args=args if args is not None else sys.argv)
+    except RCLError as exc:  # a --ros-args mistake: a params file that is missing or bad
+        print(f"error: {str(exc).split(', at ')[0]}", file=sys.stderr)
+        return 2
     node = None
     try:
         node = factory()

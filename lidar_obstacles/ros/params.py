@@ -13,8 +13,11 @@ from rcl_interfaces.msg import (
 )
 from rclpy.node import Node
 
-from lidar_obstacles.config import ParamInfo, params_of, replace
+from lidar_obstacles.config import NODE_CONFIGS, ParamInfo, params_of, replace
 from lidar_obstacles.errors import ConfigError
+
+# Parameters rclpy itself declares or reads on every node.
+ROS_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
 
 _TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
           float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
@@ -48,6 +51,15 @@ def declare_config(node: Node, cls: type) -> Any:
         except Exception as exc:  # rclpy raises its own types for type and range errors
             raise ConfigError(f"parameter '{info.name}': {exc}".splitlines()[0]) from None
         values[info.name] = param.value
+    # As `load_params_file`: a shared params file may carry another node's parameters,
+    # but a name no node knows is a typo the user must hear of, not a silent default.
+    all_known = {p.name for c in NODE_CONFIGS.values() for p in params_of(c)}
+    # (rclpy keeps the overrides in a private dict: it has no public accessor in Jazzy)
+    unknown = sorted(n for n in node._parameter_overrides
+                     if n not in all_known and n not in ROS_PARAMETERS
+                     and not n.startswith("qos_overrides."))
+    if unknown:
+        raise ConfigError(f"unknown parameter '{unknown[0]}' (see docs/parameters.md)")
     return replace(cls(), values)
 
 
