@@ -631,7 +631,19 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str) -> T:
     unknown = [n for n in updates if n not in all_known]
     if unknown:
         raise ConfigError(f"params file {path}: unknown parameter '{unknown[0]}'")
-    return replace(cls(), {k: v for k, v in updates.items() if k in known})
+    # ... but their values are checked too: a file that breaks the other node is bad input
+    # whichever command reads it first
+    for other in NODE_CONFIGS.values():
+        if other is not cls:
+            names = {p.name for p in params_of(other)}
+            try:
+                replace(other(), {k: v for k, v in updates.items() if k in names})
+            except ConfigError as exc:
+                raise ConfigError(f"params file {path}: {exc}") from None
+    try:
+        return replace(cls(), {k: v for k, v in updates.items() if k in known})
+    except ConfigError as exc:
+        raise ConfigError(f"params file {path}: {exc}") from None
 
 
 def _yaml_scalar(value: Any) -> str:

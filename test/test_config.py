@@ -8,6 +8,7 @@ import pytest
 from conftest import REPO
 from lidar_obstacles.config import (
     NODE_CONFIGS,
+    CloudSimplifierConfig,
     DemBuilderConfig,
     ObstacleDetectorConfig,
     dump_ros_yaml,
@@ -84,6 +85,11 @@ def test_params_file_forms(tmp_path):
         load_params_file(bad, ObstacleDetectorConfig, "obstacle_detector")
     with pytest.raises(ConfigError, match="not found"):
         load_params_file(tmp_path / "missing.yaml", ObstacleDetectorConfig, "x")
+    # a value bad for the other node is bad input for this one too (one shared file)
+    magic = tmp_path / "magic.yaml"
+    magic.write_text("/**:\n  ros__parameters:\n    ground.method: magic\n")
+    with pytest.raises(ConfigError, match="magic.yaml.*ground.method"):
+        load_params_file(magic, CloudSimplifierConfig, "cloud_simplifier")
     broken = tmp_path / "broken.yaml"
     broken.write_text("a: [1, 2\n")
     with pytest.raises(ConfigError, match="broken.yaml"):
