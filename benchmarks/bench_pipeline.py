@@ -198,9 +198,10 @@ def bench_memory(minutes: float) -> dict:
 
 
 def main() -> None:
-    from lidar_obstacles.core.arrays import single_threaded_blas
+    from lidar_obstacles.core.arrays import reuse_freed_memory, single_threaded_blas
 
     single_threaded_blas()  # as the nodes and the CLI run
+    reuse_freed_memory()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="short flights")
     ap.add_argument("--minutes", type=float, default=None, help="memory-test flight length")

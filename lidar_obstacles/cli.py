@@ -9,7 +9,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from lidar_obstacles.core.arrays import single_threaded_blas
+from lidar_obstacles.core.arrays import reuse_freed_memory, single_threaded_blas
 from lidar_obstacles.errors import LidarObstaclesError
 
 SCENES = ("mixed", "corridor", "urban", "forest")
@@ -189,6 +189,7 @@ def run(args: argparse.Namespace) -> dict:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     single_threaded_blas()
+    reuse_freed_memory()
     try:
         summary = run(args)
     except LidarObstaclesError as exc:

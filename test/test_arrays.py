@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from lidar_obstacles.core.arrays import (all_columns, column_max, column_mean, column_min,
-                                         release_free_memory, row_norm, single_threaded_blas,
-                                         unique_ints)
+                                         release_free_memory, reuse_freed_memory, row_norm,
+                                         single_threaded_blas, unique_ints)
 
 
 @pytest.mark.parametrize("shape", [(1, 3), (7, 2), (5000, 3)])
@@ -64,3 +64,12 @@ def test_release_free_memory_hands_freed_pages_back():
     before = rss_mb()
     release_free_memory()
     assert rss_mb() < before - 50
+
+
+def test_reuse_freed_memory_is_set_on_glibc():
+    # the CI machine is glibc Linux; mallopt says 1 for each of the three settings
+    import platform
+
+    if platform.libc_ver()[0] != "glibc":
+        pytest.skip("glibc only")
+    assert reuse_freed_memory() is True

@@ -25,7 +25,8 @@ from rclpy.qos import (
 )
 from sensor_msgs.msg import PointCloud2
 
-from lidar_obstacles.core.arrays import release_free_memory, single_threaded_blas
+from lidar_obstacles.core.arrays import (release_free_memory, reuse_freed_memory,
+                                         single_threaded_blas)
 from lidar_obstacles.errors import ConfigError, LidarObstaclesError
 from lidar_obstacles.ros.params import declare_config, on_parameter_change
 from lidar_obstacles.ros.stages import Pose, pose_of_odometry
@@ -221,6 +222,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
     from rclpy._rclpy_pybind11 import RCLError
 
     single_threaded_blas()
+    reuse_freed_memory()
     try:
         rclpy.init(args=args if args is not None else sys.argv)
     except RCLError as exc:  # a --ros-args mistake: a params file that is missing or bad
