@@ -322,7 +322,8 @@ def rolling(rel: str, cfg: DemBuilderConfig, n_msgs: int) -> list[dict]:
         rows.append(dict(file=rel, method=method, messages=len(times), p50_ms=float(np.median(t)),
                          p95_ms=float(np.percentile(t, 95)), max_ms=float(t.max()),
                          anchor_binning_p95_ms=float(np.percentile(np.array(anchor) * 1e3, 95)),
-                         grid=list(snap.shape), known_share=float(np.isfinite(snap.elevation).mean())))
+                         grid=list(snap.shape),
+                         known_share=float(np.isfinite(snap.elevation).mean())))
     return rows
 
 

@@ -5,9 +5,9 @@
   paper's test). Speed of the ground filter alone (`classify_ground`, what the target is
   about) and of the whole detector, in points per second.
 - Anchors in the same run on the same samples: `pysmrf` (SMRF in Python with PDAL's
-  parameters; PDAL's C++ SMRF runs ~5.5 x faster than it) and `cloth-simulation-filter` (CSF, C++), accuracy and
-  speed; `open3d-cpu`'s RANSAC `segment_plane` against this package's `ransac_plane` on
-  the same 50 m tiles (time and inlier share).
+  parameters; PDAL's C++ SMRF runs ~5.5 x faster than it) and `cloth-simulation-filter`
+  (CSF, C++), accuracy and speed; `open3d-cpu`'s RANSAC `segment_plane` against this
+  package's `ransac_plane` on the same 50 m tiles (time and inlier share).
 - Power-line corridor and AHN4: wire/tower/building recall and precision, wire and tower
   points put in ground, ground kappa.
 
@@ -266,7 +266,8 @@ def main() -> None:
         print(f"| {f} | {fmt(m['ground_object']['kappa'])} | "
               f"{fmt(pc['wire']['producers_accuracy'])} | {fmt(pc['wire']['users_accuracy'])} | "
               f"{fmt(pc['tower']['producers_accuracy'])} | {fmt(pc['tower']['users_accuracy'])} | "
-              f"{fmt(pc['building']['producers_accuracy'])} | {fmt(pc['building']['users_accuracy'])} | "
+              f"{fmt(pc['building']['producers_accuracy'])} | "
+              f"{fmt(pc['building']['users_accuracy'])} | "
               f"{'-' if unsafe is None else f'{100 * unsafe:.2f}'} |")
         out[f] = {"ground_kappa": m["ground_object"]["kappa"], "per_class": pc,
                   "safety": m["safety"], "seconds": dt}

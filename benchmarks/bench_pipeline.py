@@ -101,6 +101,7 @@ def bench_live_latency(seconds: float, with_dem_builder: bool = False,
                ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     os.environ.update(env)
     frames = list(simulate_flight(SimSettings(scene=scene, seed=3, duration=seconds)))
+
     def start(name: str) -> subprocess.Popen:
         exe = Path(sys.executable).parent / name
         cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", f"lidar_obstacles.ros.{name}"]
@@ -192,7 +193,8 @@ def bench_memory(minutes: float) -> dict:
             samples.append((i, rss_mb(), peak_mb()))
     ref = next(s for s in samples if s[0] >= n // 10)
     return {"minutes": minutes, "messages": n, "rss_after_10pct_mb": round(ref[1], 1),
-            "rss_end_mb": round(samples[-1][1], 1), "growth": round(samples[-1][1] / ref[1] - 1.0, 4),
+            "rss_end_mb": round(samples[-1][1], 1),
+            "growth": round(samples[-1][1] / ref[1] - 1.0, 4),
             "peak_after_10pct_mb": round(ref[2], 1), "peak_end_mb": round(samples[-1][2], 1),
             "peak_growth": round(samples[-1][2] / ref[2] - 1.0, 4)}
 

@@ -110,7 +110,7 @@ def per_file(rel: str, n: int, cfg: SimplifyConfig, paper_restarts: int) -> tupl
         flat = np.column_stack([pts[:, :2], np.zeros(len(pts))])
         picks = {"normal_space": normal_space_sample(pts, labels, count, rng),
                  "random": np.isin(np.arange(len(pts)), rng.choice(len(pts), count,
-                                                                  replace=False)),
+                                                                   replace=False)),
                  "voxel3d": voxel_sample(pts, count, rng),
                  "grid2d": voxel_sample(flat, count, rng)}
         out = dict(file=rel, at=label, kept=count, reduction=1.0 - count / len(pts))

@@ -17,7 +17,8 @@ HERE = Path(__file__).resolve().parent
 
 def main() -> int:
     quick = ["--quick"] if "--quick" in sys.argv[1:] else []
-    parts = [f"# Benchmarks ({time.strftime('%Y-%m-%d %H:%M')}, {'quick' if quick else 'full'})", ""]
+    when = time.strftime('%Y-%m-%d %H:%M')
+    parts = [f"# Benchmarks ({when}, {'quick' if quick else 'full'})", ""]
     failed = []
     for script in sorted(HERE.glob("bench_*.py")):
         print(f"== {script.name}", file=sys.stderr, flush=True)

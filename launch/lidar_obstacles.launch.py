@@ -1,7 +1,8 @@
 """Start `obstacle_detector` and `dem_builder` (and, with `simplifier:=true`,
 `cloud_simplifier`) with the package's config files.
 
-    ros2 launch lidar_obstacles lidar_obstacles.launch.py points:=/lidar/points odom:=/odom namespace:=uav1
+    ros2 launch lidar_obstacles lidar_obstacles.launch.py points:=/lidar/points odom:=/odom \
+        namespace:=uav1
 """
 import os
 

@@ -91,7 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--crs", default=None, help="e.g. EPSG:32632 (default: from the bag)")
 
     for name, what, params in (
-            ("simplify", "K-means++ simplification on normals", "`cloud_simplifier`'s `simplify.*`"),
+            ("simplify", "K-means++ simplification on normals",
+             "`cloud_simplifier`'s `simplify.*`"),
             ("features", "Gaussian-map feature points", "`obstacle_detector`'s `features.*`")):
         s = sub.add_parser(name, help=f"{what} of a LAS/LAZ file or a bag")
         s.add_argument("src", type=Path, metavar="IN", help="a LAS/LAZ file or a bag")
@@ -152,7 +153,7 @@ def run(args: argparse.Namespace) -> dict:
                               with_dem=not args.no_dem)
     if args.command == "play":
         return offline.play(args.src, rate=args.rate, loop=args.loop, topics=args.topics,
-                           namespace=args.namespace)
+                            namespace=args.namespace)
     if args.command == "export-dem":
         return offline.export_dem(args.src, args.out, topic=args.topic,
                                   params_file=args.params_file, crs=args.crs)

@@ -229,8 +229,8 @@ class FeaturesConfig:
         "fast", "`faithful` the paper's: every point's triangle normals clustered, float64; "
         "`fast` float32 and points flat by PCA (l3/l2 < 0.05) taken as planes without "
         "clustering: 1.4-2.7 x faster on real scans (AHN4 buildings 3.5-4.0 -> 1.2-1.3 s "
-        "per 10 000 points) and far fewer false features on noisy flat faces (precision 0.99 against "
-        "0.38 on a box with 2 cm noise)",
+        "per 10 000 points) and far fewer false features on noisy flat faces (precision "
+        "0.99 against 0.38 on a box with 2 cm noise)",
         choices=("faithful", "fast"))
     reference: str = param(
         "local", "direction the triangle normals of a point are turned towards (those "
@@ -286,15 +286,16 @@ class SimplifyConfig:
 class DemConfig:
     ground_source: str = param("detector", "where the DEM's ground comes from: `kmeans` "
                                "(intensity K-means + TIN outlier checks) or `detector` "
-                               "(the obstacle detector's ground filter; the default: ~15 x faster per message "
-                               "than kmeans, measured on the simulator)",
+                               "(the obstacle detector's ground filter; the default: "
+                               "~15 x faster per message than kmeans, measured on the "
+                               "simulator)",
                                choices=("kmeans", "detector"))
     ground_band: float = param(0.15, "with the `detector` source, ground points more than "
                                "this above the detector's ground surface are left out of the "
                                "DEM: its acceptance band (0.5 m and more on slopes) keeps low "
                                "vegetation off the obstacle list, but a DEM wants bare earth "
-                               "(AHN4 end-to-end RMSE, kriging, 0.26 m with all of it, 0.09 m with 0.15; "
-                               "0: all of it)", "m", min=0.0, max=5.0)
+                               "(AHN4 end-to-end RMSE, kriging, 0.26 m with all of it, "
+                               "0.09 m with 0.15; 0: all of it)", "m", min=0.0, max=5.0)
     band_slope: float = param(
         0.5, "`ground_band` widens by this x the point spacing x the slope of the "
         "detector's surface: between sparse points on steep ground that surface is "

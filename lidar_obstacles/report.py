@@ -373,7 +373,8 @@ def confusion_png(
     :mod:`lidar_obstacles.core.metrics`). labels: K class names.
     Colour and percentage are the share of each reference class (column-normalised, so a
     rare class such as wires is as readable as ground; square-root colour scale so small
-    confusions show); the diagonal is then the producer's accuracy. Classes absent from both sides are left out when ``drop_empty``.
+    confusions show); the diagonal is then the producer's accuracy. Classes absent from both
+    sides are left out when ``drop_empty``.
     """
     m = np.asarray(matrix, dtype=np.int64)
     names = list(labels)
@@ -778,10 +779,12 @@ def _flat_rows(prefix: str, value: Any) -> list[tuple[str, str, str]]:
 
 def _table_flat(section: Mapping[str, Any]) -> str:
     rows = "".join(
-        f'<tr><td class="k">{html.escape(k)}</td><td>{v}</td><td class="x">{html.escape(x)}</td></tr>'
+        f'<tr><td class="k">{html.escape(k)}</td><td>{v}</td>'
+        f'<td class="x">{html.escape(x)}</td></tr>'
         for k, v, x in _flat_rows("", section)
     )
-    return f"<table><tr><th class='k'>metric</th><th>value</th><th class='k'>meaning</th></tr>{rows}</table>"
+    return ("<table><tr><th class='k'>metric</th><th>value</th><th class='k'>meaning</th></tr>"
+            f"{rows}</table>")
 
 
 def _classes_html(sec: Mapping[str, Any]) -> str:
@@ -805,8 +808,8 @@ def _classes_html(sec: Mapping[str, Any]) -> str:
         cards.append(("wires/towers taken as ground",
                       _fmt("obstacle_as_ground", safety.get("obstacle_as_ground"))))
     out.append("<div class='headline'>" + "".join(
-        f"<div class='card'><div class='v'>{v}</div><div class='l'>{html.escape(l)}</div></div>"
-        for l, v in cards) + "</div>")
+        f"<div class='card'><div class='v'>{v}</div><div class='l'>{html.escape(label)}</div></div>"
+        for label, v in cards) + "</div>")
     conf = sec.get("confusion") or {}
     matrix, labels = conf.get("matrix"), conf.get("labels")
     if _is_matrix(matrix) and labels:
@@ -820,7 +823,8 @@ def _classes_html(sec: Mapping[str, Any]) -> str:
             + f"<td><b>{_fmt('', int(m[i].sum()))}</b></td></tr>" for i in idx)
         foot = "".join(f"<td><b>{_fmt('', int(m[:, j].sum()))}</b></td>" for j in idx)
         out.append("<h3>Confusion matrix (rows predicted, columns reference)</h3>"
-                   f"<table><tr><th class='k'>predicted \\ reference</th>{head}<th>Q<sub>i+</sub></th></tr>"
+                   f"<table><tr><th class='k'>predicted \\ reference</th>{head}"
+                   "<th>Q<sub>i+</sub></th></tr>"
                    f"{body}<tr><th class='k'>Q<sub>+i</sub></th>{foot}"
                    f"<td><b>{_fmt('', int(m.sum()))}</b></td></tr></table>")
     per = sec.get("per_class") or {}

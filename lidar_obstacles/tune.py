@@ -204,8 +204,8 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
         raise ConfigError("the budget ended before a single candidate was scored")
     best_cfg = replace(start, best["params"])
     atomic_write_text(out, "# Written by `lidar-obstacles tune`: the best candidate of "
-                       f"{len(trials)} on {', '.join(i.name for i in inputs)}.\n"
-                  + dump_ros_yaml(best_cfg, "/**"))
+                      f"{len(trials)} on {', '.join(i.name for i in inputs)}.\n"
+                      + dump_ros_yaml(best_cfg, "/**"))
     complete = [t for t in trials if not t["stopped_early"]]
     sensitivity = {}
     for d in dims:

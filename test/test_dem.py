@@ -323,7 +323,6 @@ def test_dem_takes_bare_earth_from_the_detector_ground():
     assert np.nanmean(grid.elevation) < 0.05  # with all the detector's ground: ~0.09
 
 
-
 def test_band_widens_on_steep_sparse_ground_only():
     from lidar_obstacles.core.dem import band_allowance
     from lidar_obstacles.core.pipeline import bare_earth
@@ -350,6 +349,7 @@ def test_band_widens_on_steep_sparse_ground_only():
     # a NaN height (no surface there) counts as on it; too few points, no allowance
     assert band_allowance(flat[:1], np.zeros(1)).tolist() == [0.0]
     assert np.all(band_allowance(flat[:5], np.full(5, np.nan)) == 0.0)
+
 
 def _hill(rng: np.random.Generator, n: int = 40000, size: float = 100.0) -> np.ndarray:
     """Ground points (n, 3) on a smooth hill: z = 12 exp(-r^2 / 30^2) around the centre of

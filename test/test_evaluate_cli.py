@@ -28,7 +28,8 @@ def test_evaluate_replay_output_and_report(tmp_path):
     for png in ("confusion", "block_kappa", "classes", "errors", "dem_hillshade"):
         assert (tmp_path / "report" / f"{png}.png").stat().st_size > 5000, png
     assert html.count("data:image/png;base64,") >= 5
-    assert json.loads((tmp_path / "report" / "metrics.json").read_text())["n_points"] == m["n_points"]
+    metrics = json.loads((tmp_path / "report" / "metrics.json").read_text())
+    assert metrics["n_points"] == m["n_points"]
 
 
 def test_evaluate_a_sensor_frame_bag_through_its_odometry(tmp_path):
@@ -83,7 +84,8 @@ def test_tune_improves_a_mistuned_start_and_the_yaml_loads_in_the_node(tmp_path)
     start.write_text("/**:\n  ros__parameters:\n    ground:\n      method: ransac\n"
                      "    ransac:\n      distance_threshold: 0.02\n")
     space = tmp_path / "space.yaml"
-    space.write_text("ground.method: [ransac, tin, hybrid]\nransac.distance_threshold: [0.02, 2.0]\n")
+    space.write_text("ground.method: [ransac, tin, hybrid]\n"
+                     "ransac.distance_threshold: [0.02, 2.0]\n")
     out = tmp_path / "tuned.yaml"
     summary = run_cli("tune", src, "--validate", data_file("isprs/samp52-utm.laz"),
                       "--start", start, "--space", space, "--out", out, "--budget", "90s",

@@ -46,7 +46,8 @@ def test_flat_ground_with_buildings(method):
     xyz = np.concatenate([ground, roof])
     res = _run(xyz, method)
     truth = np.r_[np.ones(len(ground), bool), np.zeros(len(roof), bool)]
-    under_roof = (ground[:, 0] > 20) & (ground[:, 0] < 40) & (ground[:, 1] > 20) & (ground[:, 1] < 35)
+    under_roof = ((ground[:, 0] > 20) & (ground[:, 0] < 40)
+                  & (ground[:, 1] > 20) & (ground[:, 1] < 35))
     ok = ~np.r_[under_roof, np.zeros(len(roof), bool)]  # a LiDAR would not see under the roof
     # The faithful TIN densification keeps a high Type I on noisy flat ground (its vertex-
     # angle test stops early; measured on ISPRS too); the hybrid is the default.

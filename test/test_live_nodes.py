@@ -132,6 +132,7 @@ def test_nodes_process_a_played_flight(flight, ros_node, tmp_path):
             stderr=subprocess.PIPE, text=True)
         _spin_until(ros_node, lambda: player.poll() is not None, 180)
         assert player.returncode == 0, player.stderr
+
         def status() -> dict[str, str]:  # the detector's newest diagnostics
             return {kv.key: kv.value for d in got["diag"] for s in d.status
                     if s.name.startswith("obstacle_detector") for kv in s.values}
@@ -236,7 +237,8 @@ def test_runtime_parameters_and_malformed_clouds(ros_node):
 ])
 def test_bad_parameter_at_start_exits_2(args, expected):
     proc = _start("lidar_obstacles.ros.obstacle_detector", *args)
-    rc, log = _stop(proc) if proc.wait(timeout=60) is None else (proc.returncode, proc.stdout.read())
+    rc, log = (_stop(proc) if proc.wait(timeout=60) is None
+               else (proc.returncode, proc.stdout.read()))
     assert rc == 2, log
     assert expected in log
     assert "Traceback" not in log

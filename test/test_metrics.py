@@ -98,7 +98,8 @@ def test_bad_input():
 def test_blocks_eligibility():
     # 2x1 blocks: left block x<1 has 10 ground + 10 object (eligible);
     # right block has 99 ground + 1 object (1 % < 5 %: not eligible)
-    xy = np.r_[np.c_[np.full(20, 0.2), np.arange(20.0) / 20], np.c_[np.full(100, 1.8), np.arange(100.0) / 100]]
+    xy = np.r_[np.c_[np.full(20, 0.2), np.arange(20.0) / 20],
+               np.c_[np.full(100, 1.8), np.arange(100.0) / 100]]
     ref = np.r_[np.ones(10, bool), np.zeros(10, bool), np.ones(99, bool), np.zeros(1, bool)]
     pred = ref.copy()
     pred[0] = False  # one ground rejected in the left block: [[9,0],[1,10]]
@@ -132,7 +133,8 @@ def test_grid_errors_nan():
 
 def test_grid_values_at():
     grid = np.arange(6.0).reshape(2, 3)  # z = c + 3 r, centres at (c+.5, r+.5)
-    z = M.grid_values_at(grid, [[1.0, 1.0], [0.5, 0.5], [9.0, 9.0]], resolution=1.0, origin=(0.0, 0.0))
+    z = M.grid_values_at(grid, [[1.0, 1.0], [0.5, 0.5], [9.0, 9.0]], resolution=1.0,
+                         origin=(0.0, 0.0))
     assert z[0] == pytest.approx(0.5 + 1.5) and z[1] == pytest.approx(0.0) and np.isnan(z[2])
 
 

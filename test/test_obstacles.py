@@ -33,7 +33,8 @@ def _scene(rng):
     crown = rng.normal(0, 1.0, (3000, 3)) * [2.0, 2.0, 1.5] + [0, 0, 8]  # kept below the line
     add(crown, 5)
     roof = np.column_stack([rng.uniform(-25, -15, (3000, 2)) + [0, 45], np.full(3000, 8.0)])
-    walls = np.column_stack([np.full(600, -25.0), rng.uniform(20, 30, 600), rng.uniform(0.5, 8, 600)])
+    walls = np.column_stack([np.full(600, -25.0), rng.uniform(20, 30, 600),
+                             rng.uniform(0.5, 8, 600)])
     add(np.concatenate([roof, walls]), 6)
     add(np.column_stack([np.full(100, 30.0), np.full(100, 30.0), np.linspace(0.5, 9, 100)]), 1)
     add(np.array([[0.0, 50.0, 60.0]]), 7)

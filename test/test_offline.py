@@ -17,7 +17,8 @@ from lidar_obstacles.io.bags import BagReader
 from lidar_obstacles.io.pointcloud2 import read_points
 from lidar_obstacles.ros import offline
 
-SHARED_FILES = sorted(str(p.relative_to(DATA)) for p in DATA.rglob("*.laz")) if DATA.is_dir() else []
+SHARED_FILES = (sorted(str(p.relative_to(DATA)) for p in DATA.rglob("*.laz"))
+                if DATA.is_dir() else [])
 
 
 def run_cli(*args: str) -> dict:
@@ -118,7 +119,8 @@ def _contents(items) -> list[tuple[str, int, bytes]]:
         if kind is None:
             continue
         raw = msg if isinstance(msg, bytes) else _serialize(msg)
-        out.append((topic, stamp, bytes(store.serialize_cdr(store.deserialize_cdr(raw, kind), kind))))
+        again = store.serialize_cdr(store.deserialize_cdr(raw, kind), kind)
+        out.append((topic, stamp, bytes(again)))
     return out
 
 

@@ -54,7 +54,8 @@ def test_package_xml_declares_every_ros_import():
     for path in (REPO / "lidar_obstacles").rglob("*.py"):
         for m in re.finditer(r"^\s*(?:from|import) (\w+)", path.read_text(), re.M):
             imported.add(m.group(1))
-    ros_pkgs = {p for p in imported if p.endswith(("_msgs", "_srvs", "_interfaces")) or p == "rclpy"}
+    ros_pkgs = {p for p in imported
+                if p.endswith(("_msgs", "_srvs", "_interfaces")) or p == "rclpy"}
     assert ros_pkgs, "the ROS layer imports message packages"
     assert ros_pkgs <= deps, ros_pkgs - deps
     assert root.find("export/build_type").text == "ament_python"
@@ -71,6 +72,14 @@ def _workspace(tmp_path: Path) -> Path:
 
 
 @pytest.mark.slow
+def test_code_is_flake8_clean():
+    # style (setup.cfg: 100 columns) and pyflakes: unused imports and names, undefined ones
+    res = subprocess.run([sys.executable, "-m", "flake8", "lidar_obstacles", "test",
+                          "benchmarks", "docs", "launch", "setup.py"], cwd=REPO,
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stdout + res.stderr
+
+
 def test_colcon_build_and_installed_node_starts(tmp_path):
     colcon = shutil.which("colcon", path=str(Path(sys.executable).parent))
     if colcon is None:
@@ -84,7 +93,8 @@ def test_colcon_build_and_installed_node_starts(tmp_path):
                 "config/cloud_simplifier.yaml", "launch/lidar_obstacles.launch.py"):
         assert (share / rel).is_file(), rel
     for name in ("obstacle_detector", "dem_builder", "cloud_simplifier"):  # the contract's
-        assert (ws / "install" / "lidar_obstacles" / "lib" / "lidar_obstacles" / name).is_file(), name
+        exe = ws / "install" / "lidar_obstacles" / "lib" / "lidar_obstacles" / name
+        assert exe.is_file(), name
     assert (ws / "install/lidar_obstacles/share/ament_index/resource_index/packages/"
             "lidar_obstacles").is_file()
     exe = ws / "install" / "lidar_obstacles" / "lib" / "lidar_obstacles" / "obstacle_detector"

@@ -33,7 +33,8 @@ def test_pngs(tmp_path, cloud):
     r = M.evaluate_classes(ref, pred, xy=xyz[:, :2])
     p = R.confusion_png(r["confusion"]["matrix"], r["confusion"]["labels"], tmp_path / "c.png")
     assert png_size(p)[0] > 500
-    p = R.block_kappa_png(np.array(r["blocks"]["kappa"], float), r["blocks"]["extent"], tmp_path / "b.png")
+    p = R.block_kappa_png(np.array(r["blocks"]["kappa"], float), r["blocks"]["extent"],
+                          tmp_path / "b.png")
     assert png_size(p)[0] > 500
     w, _ = png_size(R.cloud_views_png(xyz, ref, tmp_path / "v.png", title="t"))
     assert w == 11 * R.DPI

@@ -27,7 +27,8 @@ def cloud():
     rng = np.random.default_rng(3)
     points = np.zeros(1000, dtype=[("x", "f8"), ("y", "f8"), ("z", "f8"), ("i", "u2")])
     points["x"] = rng.uniform(size=1000)
-    return {"xyz": rng.uniform(size=(5000, 3)), "points": points, "ground": rng.uniform(size=9) > 0.5,
+    return {"xyz": rng.uniform(size=(5000, 3)), "points": points,
+            "ground": rng.uniform(size=9) > 0.5,
             "cdr": pickle.PickleBuffer(b"\x00\x01" * 4000), "frame": "map", "n": 7}
 
 

@@ -115,7 +115,7 @@ def test_gable_roof_gives_one_cluster_per_face_and_normal_space_keeps_them():
     # each cluster is one face orientation: labels agree with the true faces
     truth = np.where(xyz[:, 2] == 0, 0, np.where(xyz[:, 0] < 15, 1, 2))
     inner = (np.abs(xyz[:, 0] - 15) > 0.5) & ~((np.abs(xyz[:, 0] - 15) > 4.5)
-                                                 & (np.abs(xyz[:, 1] - 15) < 5.5))
+                                               & (np.abs(xyz[:, 1] - 15) < 5.5))
     inner &= ~((np.abs(xyz[:, 0] - 15) < 5.5) & (np.abs(np.abs(xyz[:, 1] - 15) - 5) < 0.5))
     for face in range(3):
         labs = res.labels[inner & (truth == face)]

@@ -28,6 +28,7 @@ from lidar_obstacles.core.interpolate import (Variogram, degeneracy, interpolate
 from lidar_obstacles.core.kmeans import kmeans_ground
 from lidar_obstacles.errors import CloudFormatError, ConfigError
 
+
 @dataclass(frozen=True)
 class DemGrid:
     """A frozen DEM.

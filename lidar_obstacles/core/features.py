@@ -214,7 +214,8 @@ def _pca(offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     cov = np.einsum("cki,ckj->cij", centred, centred) + mean[:, :, None] * mean[:, None, :]
     values, vectors = np.linalg.eigh(cov)  # ascending
     # l3 / l2: ~0 on a plane, ~1 on a line (a wire is no plane, l3 / sum(l) is ~0 on both)
-    flatness = np.where(values[:, 1] > 0, values[:, 0] / np.where(values[:, 1] > 0, values[:, 1], 1.0), 1.0)
+    second = np.where(values[:, 1] > 0, values[:, 1], 1.0)
+    flatness = np.where(values[:, 1] > 0, values[:, 0] / second, 1.0)
     return vectors[:, :, 0], flatness
 
 

@@ -801,7 +801,8 @@ class _GroundWindows:
         work, scratch, out = opening.work, opening.scratch, opening.eroded
         high = np.where(np.isinf(ground_grid), -np.inf, ground_grid)
         _window_extreme(high, radius, 0, np.maximum, -np.inf, scratch, work)
-        self.high = _window_extreme(scratch, radius, 1, np.maximum, -np.inf, out, work).ravel().copy()
+        self.high = _window_extreme(scratch, radius, 1, np.maximum, -np.inf, out,
+                                    work).ravel().copy()
         _window_extreme(ground_grid, radius, 0, np.minimum, np.inf, scratch, work)
         self.low = _window_extreme(scratch, radius, 1, np.minimum, np.inf, out, work).ravel().copy()
         self.shape = ground_grid.shape
@@ -1123,7 +1124,8 @@ class GroundSurface:
 
 
 def _ransac_tiles(xyz: np.ndarray, tiling: TilingConfig, rcfg: RansacConfig,
-                  rng: np.random.Generator, fixed: np.ndarray | None) -> tuple[np.ndarray, int, int]:
+                  rng: np.random.Generator, fixed: np.ndarray | None
+                  ) -> tuple[np.ndarray, int, int]:
     """Per-tile RANSAC ground with automatic re-tiling of poor tiles."""
     ground = np.zeros(len(xyz), bool)
     lo = xyz[:, :2].min(axis=0)

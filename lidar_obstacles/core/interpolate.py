@@ -5,7 +5,8 @@ One entry, :func:`interpolate`, with five methods:
 - ``tin``: Delaunay triangulation, linear inside each triangle, NaN outside the hull.
 - ``idw``: inverse distance weighting of the nearest samples.
 - ``kriging``: ordinary kriging with a variogram fitted to the samples (nugget by
-  cross-validation, see :func:`choose_nugget`), on LOCAL neighbourhoods. Written in the dual form, estimate(x) = sum_i a_i gamma(|x - x_i|) + b
+  cross-validation, see :func:`choose_nugget`), on LOCAL neighbourhoods. Written in the
+  dual form, estimate(x) = sum_i a_i gamma(|x - x_i|) + b
   with [Gamma 1; 1' 0][a; b] = [z; 0], which is algebraically the same as solving for the
   kriging weights but needs one solve per neighbourhood instead of one per query; queries
   in the same block of one sample spacing share a neighbourhood (a grid denser than the

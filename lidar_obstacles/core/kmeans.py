@@ -295,7 +295,8 @@ def tin_outlier_filter(xyz: np.ndarray, *, threshold: float, max_rounds: int) ->
     neighbours (inverse-distance mean) and drops the points whose |residual| exceeds
     ``threshold`` (m) and is the largest in their neighbourhood (a spike makes its
     neighbours' residuals large too, so only the local extreme goes and the others are
-    judged again on the next TIN), and every point off by more than 4 x threshold. Stops when nothing is dropped or after ``max_rounds``.
+    judged again on the next TIN), and every point off by more than 4 x threshold. Stops
+    when nothing is dropped or after ``max_rounds``.
     Fewer than 4 points or a degenerate (collinear) set: nothing is dropped.
     """
     keep = np.ones(len(xyz), dtype=bool)

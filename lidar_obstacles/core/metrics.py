@@ -113,7 +113,6 @@ _CODE_TO_GROUP[WIRE] = GROUP_WIRE
 _CODE_TO_GROUP[TOWER] = GROUP_TOWER
 
 
-
 # --------------------------------------------------------------------------- helpers
 
 
@@ -126,7 +125,8 @@ def _as_codes(classes: Any, name: str) -> np.ndarray:
     """(N,) int64 ASPRS codes in 0..255, or CloudFormatError naming the argument."""
     arr = np.asarray(classes)
     if arr.ndim != 1:
-        raise CloudFormatError(f"{name}: expected a 1-D array of class codes, got shape {arr.shape}")
+        raise CloudFormatError(f"{name}: expected a 1-D array of class codes, got shape "
+                               f"{arr.shape}")
     if arr.size and not np.issubdtype(arr.dtype, np.integer):
         if not np.issubdtype(arr.dtype, np.floating) or not np.all(np.isfinite(arr)) or np.any(
             arr != np.round(arr)
@@ -336,7 +336,8 @@ def block_kappa(
         p_o = (tables[:, 0, 0] + tables[:, 1, 1]) / n
         p_e = (pred_ground * ref_ground + pred_object * ref_object) / n**2
         kappa = (p_o - p_e) / (1.0 - p_e)
-        eligible = (n > 0) & (ref_ground >= min_class_share * n) & (ref_object >= min_class_share * n)
+        eligible = ((n > 0) & (ref_ground >= min_class_share * n)
+                    & (ref_object >= min_class_share * n))
     # Eligible blocks have both reference classes, so P_e < 1 and kappa is finite.
     kappa = np.where(eligible, kappa, np.nan)
     good = kappa[eligible]
@@ -425,9 +426,8 @@ def evaluate_classes(
         "kappa": kappa_from_confusion(matrix),
         "per_class": per_class,
         "ground_object": ground_object_errors(ref_ground, pred_ground),
-        "blocks": None
-        if xy is None
-        else block_kappa(xy, ref_ground, pred_ground, blocks=blocks, min_class_share=min_class_share),
+        "blocks": None if xy is None else block_kappa(
+            xy, ref_ground, pred_ground, blocks=blocks, min_class_share=min_class_share),
         "safety": {
             "n_wire": n_wire,
             "n_tower": n_tower,
@@ -466,7 +466,8 @@ def grid_errors(reference: Any, estimate: Any) -> dict:
     ref, est = _paired_finite(reference, estimate, "grid_errors")
     n = int(ref.size)
     if n == 0:
-        return {"n": 0, "rmse_m": None, "mae_m": None, "bias_m": None, "max_abs_m": None, "r2": None}
+        return {"n": 0, "rmse_m": None, "mae_m": None, "bias_m": None, "max_abs_m": None,
+                "r2": None}
     err = est - ref
     ss_res = float(err @ err)
     dev = ref - ref.mean()

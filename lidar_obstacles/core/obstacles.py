@@ -36,7 +36,7 @@ from scipy.spatial import cKDTree
 
 from lidar_obstacles.config import ClearanceConfig, ObstaclesConfig
 from lidar_obstacles.core.arrays import (all_columns, column_max, column_mean, column_min,
-                                          row_norm)
+                                         row_norm)
 from lidar_obstacles.core.classes import (
     BUILDING,
     GROUND,
@@ -229,7 +229,7 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
         return LocalShape(z, z, up, up, z, np.ones(m))
     k = min(max_neighbours, v)
     dist, nn = search_tree(centre).query(at, k=k, distance_upper_bound=radius,
-                                     workers=_workers(q, k))
+                                         workers=_workers(q, k))
     inside = np.isfinite(dist)
     n_near = inside.sum(axis=1).astype(np.float64)
     # Neighbourhood sums of 1, x, y, z and the six products in one sparse product
@@ -269,7 +269,7 @@ def _isolated(pts: np.ndarray, radius: float, min_neighbours: int) -> np.ndarray
     ask = np.flatnonzero(count[voxel.ravel()] <= min_neighbours)
     if len(ask):
         dist, _ = search_tree(pts).query(pts[ask], k=min_neighbours + 1,
-                                     distance_upper_bound=radius, workers=_workers(len(ask)))
+                                         distance_upper_bound=radius, workers=_workers(len(ask)))
         isolated[ask] = ~np.isfinite(dist.reshape(len(ask), -1)[:, -1])
     return isolated
 
@@ -300,7 +300,8 @@ def voxel_components(xyz: np.ndarray, size: float) -> np.ndarray:
     vijk = np.column_stack([vox // (dims[1] * dims[2]), (vox // dims[2]) % dims[1],
                             vox % dims[2]])
     for off in offsets:
-        nkey = ((vijk[:, 0] + off[0]) * dims[1] + vijk[:, 1] + off[1]) * dims[2] + vijk[:, 2] + off[2]
+        nkey = (((vijk[:, 0] + off[0]) * dims[1] + vijk[:, 1] + off[1]) * dims[2]
+                + vijk[:, 2] + off[2])
         pos = np.searchsorted(vox, nkey)
         pos = np.minimum(pos, len(vox) - 1)
         hit = vox[pos] == nkey

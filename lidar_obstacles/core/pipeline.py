@@ -5,7 +5,8 @@ messages; `ground_step`), then obstacle classification and the clearance grid
 (`obstacle_step`, which remembers the towers it saw). `DemPipeline.process` finds the
 ground (K-means or the detector's filter) and updates the rolling DEM. Results are values;
 the only long-lived state is the ground context (`StreamingGround`), the towers and the
-rolling DEM, each held by one explicit object, so the halves can run in different processes (`replay`).
+rolling DEM, each held by one explicit object, so the halves can run in different
+processes (`replay`).
 """
 from __future__ import annotations
 

@@ -135,8 +135,8 @@ class PipelineNode(Node):
                          reliability=wanted)
         self._points_sub = self.create_subscription(PointCloud2, "points", self._on_points, qos)
         self._points_reliability = wanted
-        self.get_logger().info(f"subscribed to {self.resolve_topic_name('points')} "
-                               f"({'reliable' if wanted == ReliabilityPolicy.RELIABLE else 'best effort'})")
+        kind = "reliable" if wanted == ReliabilityPolicy.RELIABLE else "best effort"
+        self.get_logger().info(f"subscribed to {self.resolve_topic_name('points')} ({kind})")
 
     # ---------------------------------------------------------------- processing
     def _on_points(self, msg: PointCloud2) -> None:

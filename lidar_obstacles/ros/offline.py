@@ -293,8 +293,9 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
     ground, the DEM's (DemWork). `replay` hands the obstacles and the DEM each to a
     process of its own while this one finds the next cloud's ground; the detector's
     halves and the DEM each keep their state (ground context; towers seen; the rolling
-    DEM) and see the clouds in order, so the result is the same as one process's. Otherwise the DEM work is done
-    here. Malformed clouds are counted and skipped, like the node drops them.
+    DEM) and see the clouds in order, so the result is the same as one process's.
+    Otherwise the DEM work is done here. Malformed clouds are counted and skipped, as the
+    node drops them.
     """
     cloud_topic = reader.pointcloud_topic(topic)
     odom = _odom_topics(reader)
@@ -370,7 +371,8 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
         stats.wall_seconds = time.perf_counter() - t_start
         if first_ns is not None and last_ns is not None:
             # A bag of n messages at rate r covers n periods, not n-1.
-            period = (last_ns - first_ns) / max(stats.messages - 1, 1) if stats.messages > 1 else 1e8
+            period = ((last_ns - first_ns) / max(stats.messages - 1, 1)
+                      if stats.messages > 1 else 1e8)
             stats.bag_seconds = (last_ns - first_ns + period) * 1e-9
 
 
@@ -558,7 +560,8 @@ class _BackgroundWriter:
                 continue  # keep taking items so that the producer never blocks for ever
             try:
                 for name, stamp_ns, msg in drain(item, stats=self._stats):
-                    self._bag.write(name, stamp_ns, msg if isinstance(msg, bytes) else _serialize(msg))
+                    raw = msg if isinstance(msg, bytes) else _serialize(msg)
+                    self._bag.write(name, stamp_ns, raw)
             except BaseException as exc:  # noqa: BLE001 - handed to the caller
                 self._error = exc
 
