@@ -1,16 +1,13 @@
 """DEM grids, thinning, ground source and the rolling DEM (lidar_obstacles.core.dem)."""
 from __future__ import annotations
 
-import sys
-import types
 
 import numpy as np
 import pytest
 
 from conftest import data_file
 from lidar_obstacles.config import DemBuilderConfig, ThinningConfig, replace
-from lidar_obstacles.core.dem import (RollingDem, accuracy, build_dem, select_ground,
-                                      thin, tin_curvature)
+from lidar_obstacles.core.dem import RollingDem, accuracy, build_dem, thin, tin_curvature
 from lidar_obstacles.errors import CloudFormatError, ConfigError
 
 
@@ -134,22 +131,18 @@ def test_curvature_thinning_keeps_more_where_terrain_bends():
     assert share_ditch > 1.5 * share_flat
 
 
-def test_detector_ground_source_called_by_interface(monkeypatch):
-    calls = {}
+def test_kmeans_ground_source_is_the_papers_kmeans():
+    from lidar_obstacles.core.kmeans import kmeans_ground
+    from lidar_obstacles.core.pipeline import DemPipeline
 
-    def classify_ground(xyz, *, tiling, ground, tin, ransac, context_xyz=None, rng=None):
-        calls["kw"] = (tiling, ground, tin, ransac, context_xyz, rng)
-        return types.SimpleNamespace(ground=xyz[:, 2] < 1.0,
-                                     height_above_ground=np.zeros(len(xyz)))
-
-    fake = types.ModuleType("lidar_obstacles.core.ground")
-    fake.classify_ground = classify_ground
-    monkeypatch.setitem(sys.modules, "lidar_obstacles.core.ground", fake)
-    xyz = np.array([[0.0, 0.0, 0.5], [1.0, 0.0, 5.0], [0.0, 1.0, 0.2]])
-    cfg = _cfg(**{"dem.ground_source": "detector"})
-    found = select_ground(xyz, cfg=cfg)
-    assert found.source == "detector" and found.ground.tolist() == [True, False, True]
-    assert calls["kw"][0] is cfg.tiling and calls["kw"][4] is None
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0, 50, (3000, 2))
+    z = np.where(rng.random(3000) < 0.3, rng.uniform(2, 10, 3000), rng.normal(0, 0.05, 3000))
+    xyz = np.column_stack([xy, z])
+    cfg = _cfg(**{"dem.ground_source": "kmeans"})
+    ground = DemPipeline(cfg).ground_of(xyz, stamp=0.0, intensity=None)
+    assert np.array_equal(ground, kmeans_ground(xyz, cfg=cfg.kmeans).ground)
+    assert (z[ground] < 1.0).mean() > 0.95 and ground[z < 0.2].mean() > 0.8
 
 
 def test_rolling_dem_window_follows_vehicle_and_is_bounded():

@@ -25,7 +25,6 @@ from lidar_obstacles.config import DemBuilderConfig, KrigingConfig, ThinningConf
 from lidar_obstacles.core.arrays import column_min, unique_ints
 from lidar_obstacles.core.interpolate import (Variogram, degeneracy, interpolate,
                                               kriging_variogram, merge_coincident)
-from lidar_obstacles.core.kmeans import kmeans_ground
 from lidar_obstacles.errors import CloudFormatError, ConfigError
 
 
@@ -323,42 +322,6 @@ def ground_blunders(xyz: np.ndarray, *, max_area: float, rise: float,
     # the points that far down: a cell of low blunders also holds the ground above them.
     return raised[label][inverse] | (sunk[label][inverse]
                                      & (xyz[:, 2] - bottom[inverse] < -sink))
-
-
-# --------------------------------------------------------------------------- ground source
-
-
-@dataclass(frozen=True)
-class DemGround:
-    """ground: (N,) bool points used for the DEM; source: `kmeans` or `detector`;
-    reason: a note on how it was found ("" when as configured)."""
-
-    ground: np.ndarray
-    source: str
-    reason: str = ""
-
-
-def select_ground(xyz: np.ndarray, *, cfg: DemBuilderConfig, intensity: np.ndarray | None = None,
-                  rng: np.random.Generator | int | None = None) -> DemGround:
-    """Ground points of a cloud by ``cfg.dem.ground_source``.
-
-    xyz: (N, 3) float64 metres. intensity: (N,) only when it is a real measurement (see
-    :func:`lidar_obstacles.core.kmeans.kmeans_ground`). ``detector`` calls
-    ``lidar_obstacles.core.ground.classify_ground`` (imported here, lazily, so the DEM
-    does not depend on the detector unless asked to).
-    """
-    if cfg.dem.ground_source == "detector":
-        from lidar_obstacles.core.ground import classify_ground
-
-        gen = np.random.default_rng(cfg.ransac.seed if rng is None else rng)
-        from lidar_obstacles.core.pipeline import bare_earth_of
-
-        res = classify_ground(xyz, tiling=cfg.tiling, ground=cfg.ground, tin=cfg.tin,
-                              ransac=cfg.ransac, context_xyz=None, rng=gen)
-        return DemGround(bare_earth_of(xyz, np.asarray(res.ground, dtype=bool),
-                                       res.height_above_ground, cfg.dem), "detector")
-    found = kmeans_ground(xyz, cfg=cfg.kmeans, intensity=intensity, rng=rng)
-    return DemGround(found.ground, "kmeans", found.reason)
 
 
 # --------------------------------------------------------------------------- grids
