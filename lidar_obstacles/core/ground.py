@@ -70,7 +70,7 @@ import numpy as np
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from lidar_obstacles.config import GroundConfig, RansacConfig, TilingConfig, TinConfig
-from lidar_obstacles.core.arrays import points_xyz
+from lidar_obstacles.core.arrays import all_columns, column_max, column_min, points_xyz
 from lidar_obstacles.core.ransac import ransac_plane
 
 # TIN variant: a seed this far below the median of its neighbouring seeds is a low blunder.
@@ -1128,28 +1128,41 @@ def _ransac_tiles(xyz: np.ndarray, tiling: TilingConfig, rcfg: RansacConfig,
                   ) -> tuple[np.ndarray, int, int]:
     """Per-tile RANSAC ground with automatic re-tiling of poor tiles."""
     ground = np.zeros(len(xyz), bool)
-    lo = xyz[:, :2].min(axis=0)
-    hi = xyz[:, :2].max(axis=0)
+    lo = column_min(xyz[:, :2])
+    hi = column_max(xyz[:, :2])
     nx = max(1, int(np.ceil((hi[0] - lo[0]) / tiling.size)))
     ny = max(1, int(np.ceil((hi[1] - lo[1]) / tiling.size)))
     queue = [(lo + np.array([i, j]) * tiling.size, tiling.size, 0)
              for i in range(nx) for j in range(ny)]
     tiles = splits = 0
     fixed = np.zeros((0, 3)) if fixed is None else fixed
+    # A tile's points come from the x-sorted order (a binary search, then y), not a pass
+    # over every point per tile: O(N x tiles) was seconds on a 774 000-point survey.
+    by_x = np.argsort(xyz[:, 0], kind="stable")
+    xs = xyz[by_x, 0]
+
+    def in_box(box_lo: np.ndarray, box_hi: np.ndarray) -> np.ndarray:
+        """Indices (ascending, as a mask would give them) of the points in the box."""
+        i0, i1 = np.searchsorted(xs, [box_lo[0], box_hi[0]])
+        cand = by_x[i0:i1]
+        y = xyz[cand, 1]
+        return np.sort(cand[(y >= box_lo[1]) & (y < box_hi[1])])
+
     while queue:
         corner, size, depth = queue.pop()
-        core = np.all((xyz[:, :2] >= corner) & (xyz[:, :2] < corner + size), axis=1)
+        ov = tiling.overlap
+        inner = in_box(corner - ov, corner + size + ov)
+        inner_xy = xyz[inner, :2]
+        core = all_columns((inner_xy >= corner) & (inner_xy < corner + size))
         if not core.any():
             continue
-        ov = tiling.overlap
-        inner = np.all((xyz[:, :2] >= corner - ov) & (xyz[:, :2] < corner + size + ov), axis=1)
-        f_in = np.all((fixed[:, :2] >= corner - ov) & (fixed[:, :2] < corner + size + ov), axis=1)
+        f_in = all_columns((fixed[:, :2] >= corner - ov) & (fixed[:, :2] < corner + size + ov))
         pts = np.concatenate([xyz[inner], fixed[f_in]])
         tiles += 1
         res = ransac_plane(pts, distance_threshold=rcfg.distance_threshold,
                            probability=rcfg.probability, max_trials=rcfg.max_trials, rng=rng,
                            max_tilt_deg=45.0)
-        own = res.inliers[: int(inner.sum())]
+        own = res.inliers[: len(inner)]
         if res.plane is not None and len(pts) >= 10:
             resid = res.plane.distance(pts[res.inliers])
             spread = 1.4826 * np.median(np.abs(resid - np.median(resid))) if len(resid) else 0.0
@@ -1162,8 +1175,7 @@ def _ransac_tiles(xyz: np.ndarray, tiling: TilingConfig, rcfg: RansacConfig,
                 queue += [(corner + np.array([a, b]) * half, half, depth + 1)
                           for a in (0, 1) for b in (0, 1)]
                 continue
-        idx = np.flatnonzero(inner)
-        ground[idx[core[inner] & own]] = True
+        ground[inner[core & own]] = True
     return ground, tiles, splits
 
 
