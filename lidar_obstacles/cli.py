@@ -6,6 +6,7 @@ any kind ends with one line on stderr naming the problem and exit status 2.
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from pathlib import Path
 
@@ -20,6 +21,35 @@ def _positive(text: str) -> float:
     if not value > 0:
         raise argparse.ArgumentTypeError(f"must be positive, got {text}")
     return value
+
+
+def _between(low: float, high: float):
+    """An argparse type: a number in [low, high] (a rate of 1e-300 overflows a timer, a
+    tile of 1e-300 m is no tile)."""
+    def parse(text: str) -> float:
+        value = float(text)
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must lie in [{low:g}, {high:g}], got {text}")
+        return value
+    return parse
+
+
+# ROS 2 names: tokens of letters, digits and underscores (not starting with a digit),
+# joined by single slashes, with one in front or none.
+_TOKENS = r"[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*"
+
+
+def _topic(text: str) -> str:
+    if not re.fullmatch(rf"/?{_TOKENS}", text):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a valid ROS 2 topic name")
+    return text
+
+
+def _namespace(text: str) -> str:
+    if text and not re.fullmatch(rf"/?{_TOKENS}", text):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a valid ROS 2 namespace "
+                                         "(e.g. /uav1)")
+    return text
 
 
 class _Parser(argparse.ArgumentParser):
@@ -51,42 +81,46 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--duration", type=_positive, default=20.0, help="seconds of flight")
     s.add_argument("--frame", choices=("map", "sensor"), default="map",
                    help="clouds in the map frame, or in the sensor frame (use odometry)")
-    s.add_argument("--rate", type=_positive, default=10.0, help="clouds per second")
+    s.add_argument("--rate", type=_between(0.01, 1000.0), default=10.0,
+                   help="clouds per second")
     s.add_argument("--points", type=int, default=50_000, help="points per cloud")
     s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
 
     s = sub.add_parser("las2bag", help="stream a LAS/LAZ survey as PointCloud2 messages")
     s.add_argument("src", type=Path, metavar="IN.las")
     s.add_argument("out", type=Path, metavar="OUT_BAG")
-    s.add_argument("--slice-seconds", type=_positive, default=0.1,
+    s.add_argument("--slice-seconds", type=_between(1e-3, 1e5), default=0.1,
                    help="GPS-time slice per message (and stamp spacing otherwise)")
-    s.add_argument("--tile-size", type=_positive, default=None,
+    s.add_argument("--tile-size", type=_between(0.1, 1e6), default=None,
                    help="cut square tiles of this edge (m) instead of GPS slices/strips")
-    s.add_argument("--strip-width", type=_positive, default=10.0,
+    s.add_argument("--strip-width", type=_between(0.1, 1e6), default=10.0,
                    help="without GPS time: strips of this width (m) along the longer axis")
-    s.add_argument("--topic", default="/points")
+    s.add_argument("--topic", type=_topic, default="/points")
     s.add_argument("--frame-id", default="map")
     s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
 
     s = sub.add_parser("replay", help="run the pipeline offline on every cloud of a bag")
     s.add_argument("src", type=Path, metavar="IN_BAG")
     s.add_argument("out", type=Path, metavar="OUT_BAG")
-    s.add_argument("--topic", default=None, help="PointCloud2 topic (default: the only/biggest)")
+    s.add_argument("--topic", type=_topic, default=None,
+                   help="PointCloud2 topic (default: the only/biggest)")
     s.add_argument("--params-file", type=Path, default=None, help="ROS 2 params YAML")
     s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
     s.add_argument("--no-dem", action="store_true", help="skip the DEM builder")
 
     s = sub.add_parser("play", help="publish a bag into the live ROS graph")
     s.add_argument("src", type=Path, metavar="IN_BAG")
-    s.add_argument("--rate", type=_positive, default=1.0, help="speed factor")
+    s.add_argument("--rate", type=_between(0.001, 1000.0), default=1.0, help="speed factor")
     s.add_argument("--loop", action="store_true")
-    s.add_argument("--topics", nargs="+", default=None, help="only these bag topics")
-    s.add_argument("--namespace", default="", help="publish under this namespace, e.g. /uav1")
+    s.add_argument("--topics", nargs="+", type=_topic, default=None,
+                   help="only these bag topics")
+    s.add_argument("--namespace", type=_namespace, default="",
+                   help="publish under this namespace, e.g. /uav1")
 
     s = sub.add_parser("export-dem", help="build the DEM of a bag and write a GeoTIFF")
     s.add_argument("src", type=Path, metavar="IN_BAG")
     s.add_argument("out", type=Path, metavar="OUT.tif")
-    s.add_argument("--topic", default=None)
+    s.add_argument("--topic", type=_topic, default=None)
     s.add_argument("--params-file", type=Path, default=None)
     s.add_argument("--crs", default=None, help="e.g. EPSG:32632 (default: from the bag)")
 
@@ -100,7 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="a .las/.laz file for a LAS/LAZ input, a bag for a bag")
         s.add_argument("--params-file", type=Path, default=None,
                        help=f"ROS 2 params YAML ({params})")
-        s.add_argument("--topic", default=None,
+        s.add_argument("--topic", type=_topic, default=None,
                        help="PointCloud2 topic (default: the only/biggest)")
         s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
 
@@ -113,7 +147,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--report", type=Path, default=None, metavar="DIR",
                    help="write report.html, metrics.json and PNGs here")
     s.add_argument("--blocks", default="6x6", help="grid of the per-block kappa, e.g. 6x6")
-    s.add_argument("--topic", default=None)
+    s.add_argument("--topic", type=_topic, default=None)
     s.add_argument("--no-dem", action="store_true", help="skip the DEM comparison")
     s.add_argument("--benchmark", choices=("isprs",), default=None,
                    help="run all ISPRS samples in IN with one parameter set")
@@ -187,18 +221,32 @@ def run(args: argparse.Namespace) -> dict:
     raise AssertionError(args.command)  # argparse only lets known commands through
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the program is, so that it unwinds as on Ctrl-C: workers
+    stopped, partial outputs removed."""
+
+
+def _on_sigterm(signum: int, frame: object) -> None:
+    raise _Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
+    import signal
+
     args = build_parser().parse_args(argv)
     single_threaded_blas()
     reuse_freed_memory()
+    signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         summary = run(args)
     except LidarObstaclesError as exc:
         print(f"lidar-obstacles {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"lidar-obstacles {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        terminated = isinstance(exc, _Terminated)
+        print(f"lidar-obstacles {args.command}: {'terminated' if terminated else 'interrupted'}",
+              file=sys.stderr)
+        return 143 if terminated else 130
     from lidar_obstacles.ros.offline import write_json
 
     write_json(summary)

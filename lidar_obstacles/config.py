@@ -391,14 +391,18 @@ class ThinningConfig:
 
 @dataclass(frozen=True)
 class KrigingConfig:
-    neighbours: int = param(16, "nearest samples per cell", min=3, max=256)
+    neighbours: int = param(16, "nearest samples per cell (cost grows as its square: 64 "
+                            "took 2.5 s for 10 000 samples into 200 x 200 cells, 128 took "
+                            "9 s)", min=3, max=64)
     variogram: str = param("spherical", "variogram model fitted to the samples",
                            choices=("spherical", "exponential", "gaussian", "linear"))
 
 
 @dataclass(frozen=True)
 class RbfConfig:
-    neighbours: int = param(32, "nearest samples per local system", min=3, max=256)
+    neighbours: int = param(32, "nearest samples per local system (cost grows as its "
+                            "square: 64 took 2.8 s and 0.75 GB for 10 000 samples into "
+                            "200 x 200 cells, 128 took 10 s and 2.7 GB)", min=3, max=64)
     kernel: str = param("thin_plate_spline", "radial kernel",
                         choices=("thin_plate_spline", "multiquadric", "gaussian", "linear",
                                  "cubic"))
@@ -611,7 +615,7 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str) -> T:
         data = yaml.safe_load(path.read_text())
     except FileNotFoundError:
         raise ConfigError(f"params file not found: {path}") from None
-    except (OSError, yaml.YAMLError) as exc:
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
         raise ConfigError(f"params file {path}: {exc}".splitlines()[0]) from None
     if data is None:
         return cls()
@@ -622,8 +626,12 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str) -> T:
         key_s = str(key).lstrip("/")
         matches = key_s in ("**", node_name, "*") or key_s.endswith("/" + node_name)
         if isinstance(value, Mapping) and "ros__parameters" in value:
+            params = value["ros__parameters"] or {}
+            if not isinstance(params, Mapping):
+                raise ConfigError(f"params file {path}: '{key}' ros__parameters is not a "
+                                  "mapping of names to values")
             if matches:
-                updates.update(_flatten_mapping(value["ros__parameters"] or {}))
+                updates.update(_flatten_mapping(params))
         else:
             raise ConfigError(f"params file {path}: '{key}' has no ros__parameters")
     known = {p.name for p in params_of(cls)}

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from lidar_obstacles.config import DemBuilderConfig, NodeInputConfig, ObstacleDetectorConfig
-from lidar_obstacles.errors import BagError, CloudFormatError
+from lidar_obstacles.errors import BagError, CloudFormatError, LidarObstaclesError
 
 LAS_SUFFIXES = (".las", ".laz")
 ISPRS_SAMPLES = ("11", "12", "21", "22", "23", "24", "31", "41", "42", "51", "52", "53", "54",
@@ -225,8 +225,11 @@ def evaluate(src: str | Path, *, params_file: str | Path | None = None,
         metrics["latency"] = latency_stats(latencies)
     metrics = jsonable(metrics)
     if report_dir is not None:
-        metrics["report"] = str(write_evaluation_report(Path(report_dir), metrics, xyz, ref,
-                                                        pred, dem, latencies, inp.name))
+        try:
+            metrics["report"] = str(write_evaluation_report(Path(report_dir), metrics, xyz,
+                                                            ref, pred, dem, latencies, inp.name))
+        except OSError as exc:
+            raise LidarObstaclesError(f"cannot write the report in {report_dir}: {exc}") from None
     return metrics
 
 
@@ -248,6 +251,11 @@ def write_evaluation_report(out: Path, metrics: dict, xyz, ref, pred, dem, laten
     images: dict[str, Path] = {}
     images["confusion matrix"] = report.confusion_png(
         metrics["confusion"]["matrix"], metrics["confusion"]["labels"], out / "confusion.png")
+    # Maps need an area: a cloud of one point, or of one spot or line, has none to draw.
+    if len(xyz) < 3 or not (np.ptp(xyz[:, 0]) > 0 and np.ptp(xyz[:, 1]) > 0):
+        return report.write_report(out, metrics, images,
+                                   title=f"lidar_obstacles evaluation: {name}",
+                                   notes="The points span no area: no maps drawn.")
     if metrics.get("blocks"):
         b = metrics["blocks"]
         grid = np.array([[np.nan if v is None else v for v in row] for row in b["kappa"]])
@@ -261,7 +269,7 @@ def write_evaluation_report(out: Path, metrics: dict, xyz, ref, pred, dem, laten
                                               title=f"{name}: ground/object errors")
     if dem is not None:
         p = dem["predicted_dem"]
-        if np.isfinite(p.elevation).any():
+        if np.isfinite(p.elevation).any() and min(p.elevation.shape) >= 2:
             images["DEM hillshade"] = report.hillshade_png(
                 p.elevation, p.resolution, tuple(p.origin), out / "dem_hillshade.png",
                 title="DEM from the predicted ground")

@@ -148,6 +148,11 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
     from scipy.stats import qmc, spearmanr
     from tqdm import tqdm
 
+    out = Path(out)
+    if out.is_dir() or not out.parent.is_dir():  # said now, not after the whole search
+        raise ConfigError(f"cannot write the params file {out}: "
+                          + ("it is a folder" if out.is_dir() else
+                             f"folder {out.parent} does not exist"))
     dims = search_space(space_file)
     start = (load_params_file(start_file, ObstacleDetectorConfig, "obstacle_detector")
              if start_file else ObstacleDetectorConfig())
@@ -203,9 +208,12 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
     if best is None:
         raise ConfigError("the budget ended before a single candidate was scored")
     best_cfg = replace(start, best["params"])
-    atomic_write_text(out, "# Written by `lidar-obstacles tune`: the best candidate of "
-                      f"{len(trials)} on {', '.join(i.name for i in inputs)}.\n"
-                      + dump_ros_yaml(best_cfg, "/**"))
+    try:
+        atomic_write_text(out, "# Written by `lidar-obstacles tune`: the best candidate of "
+                          f"{len(trials)} on {', '.join(i.name for i in inputs)}.\n"
+                          + dump_ros_yaml(best_cfg, "/**"))
+    except OSError as exc:
+        raise ConfigError(f"cannot write the params file {out}: {exc}") from None
     complete = [t for t in trials if not t["stopped_early"]]
     sensitivity = {}
     for d in dims:

@@ -102,6 +102,19 @@ def test_a_ros1_bag_with_a_topic_without_header_replays(tmp_path):
         assert reader.count(["/obstacles"]) == reader.count(["/ground"]) == 3
 
 
+def test_only_a_bag_is_ever_overwritten(tmp_path):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    (folder / "holiday.jpg").write_bytes(b"precious")
+    (tmp_path / "notes.txt").write_text("precious")
+    for target in (folder, tmp_path / "notes.txt"):
+        with pytest.raises(BagError, match="exists and is not a bag: not overwriting"):
+            _write(target, [_points(10)])
+    assert (folder / "holiday.jpg").read_bytes() == b"precious"
+    assert (tmp_path / "notes.txt").read_text() == "precious"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt", "photos"]
+
+
 def test_failed_write_leaves_nothing_and_keeps_the_old_bag(tmp_path):
     _write(tmp_path / "bag", [_points(10)])
     before = sorted(p.name for p in (tmp_path / "bag").iterdir())

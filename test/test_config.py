@@ -90,6 +90,16 @@ def test_params_file_forms(tmp_path):
     magic.write_text("/**:\n  ros__parameters:\n    ground.method: magic\n")
     with pytest.raises(ConfigError, match="magic.yaml.*ground.method"):
         load_params_file(magic, CloudSimplifierConfig, "cloud_simplifier")
+    for text, what in (("/**:\n  ros__parameters: [1, 2]\n", "not a mapping"),
+                       ("/**:\n  ros__parameters: 7\n", "not a mapping")):
+        odd = tmp_path / "odd.yaml"
+        odd.write_text(text)
+        with pytest.raises(ConfigError, match=what):
+            load_params_file(odd, ObstacleDetectorConfig, "obstacle_detector")
+    binary = tmp_path / "binary.yaml"
+    binary.write_bytes(b"\xff\xfe\x00garbage\x80")
+    with pytest.raises(ConfigError, match="binary.yaml"):
+        load_params_file(binary, ObstacleDetectorConfig, "obstacle_detector")
     broken = tmp_path / "broken.yaml"
     broken.write_text("a: [1, 2\n")
     with pytest.raises(ConfigError, match="broken.yaml"):

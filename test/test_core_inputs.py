@@ -66,3 +66,45 @@ def test_the_dem_finds_the_detectors_ground_cloud_after_cloud_with_ransac():
         expected = bare_earth_of(xyz, step.ground, step.height_above_ground, dem.cfg.dem)
         assert np.array_equal(dem.ground_of(xyz, stamp=0.1 * i, intensity=None), expected)
         assert 0.5 < expected.mean() < 0.99
+
+
+@pytest.mark.parametrize("stray", [[1e4, 1e4, 0.0], [1e30, 0.0, 0.0], [3e38, 3e38, 5.0]])
+def test_a_stray_point_far_away_is_noise_and_costs_nothing(stray):
+    # one multipath return kilometres off made the raster gigabytes (17 GB at 10 km)
+    xyz = np.vstack([_cloud(0, 3000), stray])
+    det = ObstacleDetector(DET)
+    res = det.process(xyz)
+    assert res.classes[-1] == 7 and not res.ground[-1]
+    assert np.isnan(res.height_above_ground[-1])
+    assert res.ground[:-1].mean() > 0.5  # the rest as without it
+    alone = ObstacleDetector(DET).process(xyz[:-1])
+    assert np.array_equal(res.classes[:-1], alone.classes)
+    dem = DemPipeline(replace(DemBuilderConfig(), {"dem.ground_source": "detector"}))
+    assert not dem.ground_of(xyz, stamp=0.0, intensity=None)[-1]
+
+
+def test_far_points_keep_every_point_of_the_real_data():
+    from lidar_obstacles.core.ground import far_points
+    from lidar_obstacles.io.las import read_las
+
+    from conftest import DATA
+
+    files = sorted(DATA.rglob("*.laz")) if DATA.is_dir() else []
+    if not files:
+        pytest.skip(f"no data in {DATA}")
+    for path in files:
+        assert not far_points(read_las(path).xyz[:, :2]).any(), path.name
+
+
+def test_a_cloud_too_wide_for_the_raster_is_refused_with_the_reason():
+    # two dense patches 8 km apart: no stray point, but 64 M cells of 1 m
+    a, b = _cloud(0, 20000), _cloud(1, 20000) + [8000.0, 8000.0, 0.0]
+    with pytest.raises(CloudFormatError, match="spans .* m, more than .* cells"):
+        ObstacleDetector(DET).process(np.vstack([a, b]))
+
+
+@pytest.mark.parametrize("window", [1.0, 2.0, 2.9])
+def test_small_ground_windows_work(window):
+    # the opening's work arrays also serve the 6 m rim window: they must fit both
+    res = ObstacleDetector(replace(DET, {"ground.window": window})).process(_cloud(0))
+    assert res.ground.any()

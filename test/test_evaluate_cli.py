@@ -131,3 +131,20 @@ def test_run_detector_stops_at_its_deadline_between_clouds(tmp_path):
         run_detector(inp, ObstacleDetectorConfig(), deadline=time.monotonic() - 1.0)
     assert len(run_detector(inp, ObstacleDetectorConfig(),
                             deadline=time.monotonic() + 3600.0)) == 3
+
+
+@pytest.mark.parametrize("points", [[[1.0, 2.0, 3.0]], [[1.0, 2.0, 3.0]] * 50])
+def test_evaluate_report_of_a_cloud_without_area(tmp_path, points):
+    # one point, or one spot: the figures are computed and the report says why no maps
+    import laspy
+
+    pts = np.array(points)
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.scales, header.offsets = [0.01] * 3, [0.0] * 3
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = pts.T
+    las.classification = np.full(len(pts), 2, np.uint8)
+    las.write(str(tmp_path / "spot.las"))
+    m = run_cli("evaluate", tmp_path / "spot.las", "--report", tmp_path / "rep")
+    assert m["n_points"] == len(pts)
+    assert "no maps drawn" in (tmp_path / "rep" / "report.html").read_text()

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 import time
@@ -286,3 +287,27 @@ def test_play_waits_for_subscriptions_to_settle():
     assert not offline._subscriptions_settled(_Graph([]), ["/uav1/points"], quiet_s=0.2,
                                               timeout_s=0.5)
     assert time.monotonic() - t0 >= 0.5
+
+
+def test_sigterm_during_replay_leaves_nothing_behind(tmp_path):
+    # as on Ctrl-C: the worker processes stop and the partial bag goes (exit 128 + 15)
+    run_cli("simulate", tmp_path / "f", "--duration", "10", "--seed", "4")
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "lidar_obstacles.cli", "replay",
+                             str(tmp_path / "f"), str(out)], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60  # until it writes (its workers are forked by then)
+    while not list(tmp_path.glob(".out.partial-*")) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.5)  # a few clouds in, most of the 100 to go
+    assert proc.poll() is None, "replay finished before it could be stopped"
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143, err
+    # (a shared-memory block in flight at that moment is freed by multiprocessing's
+    # resource tracker, which says so on stderr)
+    assert "lidar-obstacles replay: terminated" in err.strip().splitlines()
+    time.sleep(0.5)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f"]  # no bag, no partial one
+    left = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True)
+    assert left.stdout.strip() == "", "worker processes left running"

@@ -72,6 +72,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 from lidar_obstacles.config import GroundConfig, RansacConfig, TilingConfig, TinConfig
 from lidar_obstacles.core.arrays import all_columns, column_max, column_min, points_xyz
 from lidar_obstacles.core.ransac import ransac_plane
+from lidar_obstacles.errors import CloudFormatError
 
 # TIN variant: a seed this far below the median of its neighbouring seeds is a low blunder.
 LOW_SEED_DROP = 2.0  # m
@@ -953,6 +954,11 @@ def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
     origin = np.array([allp[:, 0].min(), allp[:, 1].min()])  # (axis-0 reductions are slow)
     col, row = (np.floor((allp[:, a] - origin[a]) / c).astype(np.int64) for a in (0, 1))
     shape = (int(row.max()) + 1, int(col.max()) + 1)  # rows = y, cols = x
+    if shape[0] * shape[1] > MAX_RASTER_CELLS:
+        raise CloudFormatError(
+            f"the cloud (with its ground context) spans {shape[1] * c:.0f} x "
+            f"{shape[0] * c:.0f} m, more than {MAX_RASTER_CELLS:,} cells of "
+            f"ground.cell = {c} m: cut it into tiles (las2bag --tile-size)")
     flat = row * shape[1] + col
     z = np.ascontiguousarray(allp[:, 2])
     zmin = _grid_min(flat, z, shape)
@@ -977,7 +983,9 @@ def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
     # `steep_window` metres are kept apart: on steep ground they are the answer (see
     # _steep_objects).
     first = fill(zmin).copy()
-    opening = _Opening(shape, max_radius)
+    # (its work arrays also serve the rim and peak windows, which may be the wider)
+    opening = _Opening(shape, max(max_radius, int(round(cfg.rim_window / c)),
+                                  int(round(cfg.peak_window / c))))
     objects, near = opening(first, radii, steep_radius, cfg.slope * c)
     if cfg.trend_window > 0:  # objects of the de-trended surface too (see HybridSettings)
         ground0 = fill(np.where(objects | np.isnan(zmin), np.nan, zmin))
@@ -1177,6 +1185,27 @@ def _ransac_tiles(xyz: np.ndarray, tiling: TilingConfig, rcfg: RansacConfig,
                 continue
         ground[inner[core & own]] = True
     return ground, tiles, splits
+
+
+# The raster filter's grid at most (float64 work grids: ~10 x 8 bytes per cell).
+MAX_RASTER_CELLS = 25_000_000
+
+# Stray points: beyond the interquartile box of a cloud by this many IQRs plus this many
+# metres (a uniform strip spans 2 IQRs; a UAV scan's far edge lies well inside).
+FAR_IQRS = 3.0
+FAR_MARGIN = 500.0  # m
+
+
+def far_points(xy: np.ndarray) -> np.ndarray:
+    """(N,) bool: points of xy (N, 2) m far outside the rest of their cloud in XY, a
+    multipath return or a bad coordinate kilometres away. Judged on the quartiles of at
+    most ~5 000 of the points, so a few strays cannot move the bounds."""
+    n = len(xy)
+    if n < 8:
+        return np.zeros(n, bool)
+    q1, q3 = np.percentile(xy[:: max(1, n // 5000)], [25.0, 75.0], axis=0)
+    reach = FAR_IQRS * (q3 - q1) + FAR_MARGIN
+    return ~all_columns((xy >= q1 - reach) & (xy <= q3 + reach))
 
 
 def _collinear_xy(pts: np.ndarray) -> bool:

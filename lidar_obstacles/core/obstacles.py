@@ -94,6 +94,15 @@ class ObstacleClasses:
     timings: dict[str, float] = field(default_factory=dict)
     towers: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
+    @staticmethod
+    def expand(part: "ObstacleClasses", where: np.ndarray, fill: int) -> "ObstacleClasses":
+        """The classes of a cloud of len(where) points whose points `where` (bool) are
+        `part`; the others get class `fill` and no object."""
+        classes = np.full(len(where), fill, np.uint8)
+        object_id = np.full(len(where), -1, np.int32)
+        classes[where], object_id[where] = part.classes, part.object_id
+        return ObstacleClasses(classes, object_id, part.objects, part.timings, part.towers)
+
 
 def search_tree(points: np.ndarray) -> cKDTree:
     """A k-d tree of (M, D) points for exact neighbour queries, built the fast way: split at

@@ -55,6 +55,7 @@ class GroundStep:
     stamp: float
     vehicle_xyz: np.ndarray | None
     timings: dict[str, float]
+    far: np.ndarray | None = None  # (N,) bool: stray points far from the cloud (noise)
 
 
 @dataclass(frozen=True)
@@ -104,13 +105,23 @@ class StreamingGround:
             self.rng = np.random.default_rng(cfg.ransac.seed)
         self.cfg = cfg
 
-    def classify(self, xyz: np.ndarray, stamp: float) -> tuple[GroundResult, dict[str, float]]:
+    def classify(self, xyz: np.ndarray, stamp: float
+                 ) -> tuple[GroundResult, dict[str, float], np.ndarray | None]:
         """Ground of one cloud xyz (N >= 1, 3) float64 m, filtered with the context around
-        it, which this cloud's ground then joins (stamp: seconds). Returns the result and
-        the seconds spent reading the context, filtering and updating the context."""
-        from lidar_obstacles.core.ground import classify_ground
+        it, which this cloud's ground then joins (stamp: seconds). Returns the result, the
+        seconds spent reading the context, filtering and updating the context, and the
+        stray points far from the cloud (:func:`far_points`; None when there are none):
+        never ground, no height, and left out of the filter's raster, which one point
+        kilometres away would have made gigabytes."""
+        from lidar_obstacles.core.ground import GroundResult, classify_ground, far_points
 
         cfg = self.cfg
+        far = far_points(xyz[:, :2])
+        full = xyz
+        if far.any():
+            xyz = xyz[~far]
+        else:
+            far = None
         t0 = time.perf_counter()
         lo, hi = column_min(xyz[:, :2]), column_max(xyz[:, :2])
         context_xyz = self.context.points_near(lo, hi, stamp)
@@ -119,8 +130,14 @@ class StreamingGround:
                             ransac=cfg.ransac, context_xyz=context_xyz, rng=self.rng)
         t2 = time.perf_counter()
         self.context.update(xyz[g.ground], stamp, xyz[:, :2])
-        return g, {"context": t1 - t0, "ground": t2 - t1,
+        timings = {"context": t1 - t0, "ground": t2 - t1,
                    "context_update": time.perf_counter() - t2}
+        if far is not None:
+            ground = np.zeros(len(full), bool)
+            hag = np.full(len(full), np.nan, np.float32)
+            ground[~far], hag[~far] = g.ground, g.height_above_ground
+            g = GroundResult(ground, hag, g.tiles, g.splits, g.timings)
+        return g, timings, far
 
 
 class ObstacleDetector:
@@ -179,14 +196,16 @@ class ObstacleDetector:
         if len(xyz) == 0:
             return GroundStep(xyz, np.zeros(0, bool), np.zeros(0, np.float32), stamp,
                               vehicle_xyz, {"total": 0.0})
-        g, timings = self.ground.classify(xyz, stamp)
-        return GroundStep(xyz, g.ground, g.height_above_ground, stamp, vehicle_xyz, timings)
+        g, timings, far = self.ground.classify(xyz, stamp)
+        return GroundStep(xyz, g.ground, g.height_above_ground, stamp, vehicle_xyz, timings,
+                          far)
 
     def obstacle_step(self, step: GroundStep) -> ObstacleResult:
         """The second half of `process`: obstacle classes, objects and the clearance grid
         of a cloud whose ground `ground_step` found. Its only state is the towers seen in
         earlier clouds."""
-        from lidar_obstacles.core.obstacles import classify_obstacles, clearance_grid
+        from lidar_obstacles.core.obstacles import (ObstacleClasses, classify_obstacles,
+                                                    clearance_grid)
 
         cfg, xyz = self.cfg, step.xyz
         t3 = time.perf_counter()
@@ -194,10 +213,13 @@ class ObstacleDetector:
             empty = np.zeros(0, bool)
             return ObstacleResult(empty, np.zeros(0, np.uint8), np.zeros(0, np.float32),
                                   np.zeros(0, np.int32), (), None, {"total": 0.0})
-        lo, hi = column_min(xyz[:, :2]), column_max(xyz[:, :2])
-        ob = classify_obstacles(xyz, step.ground, step.height_above_ground, cfg=cfg.obstacles,
-                                rng=self._obstacle_rng,
+        near = slice(None) if step.far is None else ~step.far
+        lo, hi = column_min(xyz[near, :2]), column_max(xyz[near, :2])
+        ob = classify_obstacles(xyz[near], step.ground[near], step.height_above_ground[near],
+                                cfg=cfg.obstacles, rng=self._obstacle_rng,
                                 known_towers=self._known_towers(lo, hi))
+        if step.far is not None:  # the stray points are noise, in no object
+            ob = ObstacleClasses.expand(ob, ~step.far, NOISE)
         self._remember_towers(ob.towers, step.stamp)
         t4 = time.perf_counter()
         centre = (np.asarray(step.vehicle_xyz, float)[:2] if step.vehicle_xyz is not None
@@ -334,7 +356,7 @@ class DemPipeline:
         if self.cfg.dem.ground_source == "detector":
             if self._ground is None:
                 self._ground = StreamingGround(self.cfg)
-            g, _ = self._ground.classify(xyz, stamp)
+            g, _, _ = self._ground.classify(xyz, stamp)
             return bare_earth_of(xyz, g.ground, g.height_above_ground, self.cfg.dem)
         from lidar_obstacles.core.kmeans import kmeans_ground
 

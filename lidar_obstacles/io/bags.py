@@ -170,15 +170,21 @@ class BagWriter:
         self._conns: dict[str, Any] = {}
 
     def __enter__(self) -> "BagWriter":
-        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
 
         if not self.path.parent.is_dir():
             raise BagError(f"output folder does not exist: {self.path.parent}")
-        if self._tmp.exists():
-            shutil.rmtree(self._tmp)
-        plugin = StoragePlugin.MCAP if self.storage == "mcap" else StoragePlugin.SQLITE3
-        self._writer = Writer(self._tmp, version=9, storage_plugin=plugin)
-        self._writer.open()
+        # Only a bag is replaced: a folder of something else, or a file, is the user's data.
+        if self.path.exists() and not (self.path / "metadata.yaml").is_file():
+            raise BagError(f"{self.path} exists and is not a bag: not overwriting it")
+        try:
+            if self._tmp.exists():
+                shutil.rmtree(self._tmp)
+            plugin = StoragePlugin.MCAP if self.storage == "mcap" else StoragePlugin.SQLITE3
+            self._writer = Writer(self._tmp, version=9, storage_plugin=plugin)
+            self._writer.open()
+        except (OSError, WriterError) as exc:
+            raise BagError(f"cannot write a bag at {self.path}: {exc}") from None
         return self
 
     def add_topic(self, topic: str, msgtype: str, *, transient_local: bool = False) -> None:

@@ -415,6 +415,7 @@ def _start_worker(det_cfg: ObstacleDetectorConfig | None, dem_cfg: DemBuilderCon
 
     global _WORKER_DETECTOR, _WORKER_SCHEDULE
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # (not the parent's handler, inherited)
     single_threaded_blas()
     _WORKER_DETECTOR = DetectorStage(det_cfg) if det_cfg is not None else None
     _WORKER_SCHEDULE = DemSchedule(DemStage(dem_cfg)) if dem_cfg is not None else None
