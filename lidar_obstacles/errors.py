@@ -24,3 +24,12 @@ class BagError(LidarObstaclesError):
 
 class LasError(LidarObstaclesError):
     """A LAS/LAZ file that cannot be read or has no points."""
+
+
+def reason_key(message: str) -> str:
+    """The kind of an error, for counting rejected clouds by reason: its message up to the
+    first detail (": ..." or " (...)"), at most 80 characters. "cloud has no 'z' field
+    (fields: x, y)" counts as "cloud has no 'z' field"."""
+    cut = min((i for i in (message.find(": "), message.find(" (")) if i > 0),
+              default=len(message))
+    return message[:cut][:80]

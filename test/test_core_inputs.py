@@ -108,3 +108,13 @@ def test_small_ground_windows_work(window):
     # the opening's work arrays also serve the 6 m rim window: they must fit both
     res = ObstacleDetector(replace(DET, {"ground.window": window})).process(_cloud(0))
     assert res.ground.any()
+
+
+def test_rejected_clouds_are_counted_by_the_kind_of_their_error():
+    from lidar_obstacles.errors import reason_key
+
+    assert reason_key("cloud has no 'z' field (fields: x, y)") == "cloud has no 'z' field"
+    assert reason_key("cloud has 3000000 points, more than input.max_points=2000000") == \
+        "cloud has 3000000 points, more than input.max_points=2000000"
+    assert reason_key("point_step 8: smaller than its fields") == "point_step 8"
+    assert len(reason_key("x" * 200)) == 80

@@ -212,3 +212,11 @@ def test_normal_space_sample_rare_orientation_survives():
     labels[:3] = 1  # a rare orientation: 3 points
     keep = normal_space_sample(xyz, labels, 50, rng)
     assert keep.sum() == 50 and keep[:3].any()
+
+
+def test_a_stray_point_far_away_is_dropped_not_the_simplification():
+    rng = np.random.default_rng(0)
+    xyz = np.column_stack([rng.uniform(0, 50, (5000, 2)), rng.normal(0, 0.05, 5000)])
+    res = simplify(np.vstack([xyz, [1e30, 0.0, 0.0]]), cfg=SimplifyConfig())
+    assert not res.keep[-1] and "1 stray points" in res.reason
+    assert 0.15 < res.keep[:-1].mean() < 0.21  # simplified as without it

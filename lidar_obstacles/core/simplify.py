@@ -44,6 +44,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from lidar_obstacles.config import SimplifyConfig
+from lidar_obstacles.core.ground import far_points
 from lidar_obstacles.core.interpolate import tin
 from lidar_obstacles.core.kmeans import elbow_kmeans
 from lidar_obstacles.core.metrics import raster_correlation
@@ -396,6 +397,10 @@ def simplify(xyz: np.ndarray, *, cfg: SimplifyConfig, intensity: np.ndarray | No
                                f"expected ({n},)")
     clustered, note = _first_returns(return_number, n, cfg.first_returns)
     notes = [note] if note else []
+    far = far_points(arr[:, :2])
+    if far.any():  # a stray return kilometres off would make the cloud look like a line
+        clustered &= ~far
+        notes.append(f"{int(far.sum())} stray points far from the cloud dropped")
     if intensity is not None:
         notes.append("intensity not used: normals are geometric (PCA of X, Y, Z)")
     idx = np.flatnonzero(clustered)

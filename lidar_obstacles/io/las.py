@@ -78,7 +78,8 @@ def read_las(path: str | Path) -> LasCloud:
 
     path = Path(path)
     if not path.is_file():
-        raise LasError(f"LAS file not found: {path}")
+        raise LasError(f"not a LAS file, a folder: {path}" if path.is_dir()
+                       else f"LAS file not found: {path}")
     try:
         las = laspy.read(str(path))
     except Exception as exc:  # laspy raises many types for corrupt files

@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 
 from lidar_obstacles.config import (CloudSimplifierConfig, FeaturesConfig, ObstacleDetectorConfig,
                                     load_params_file)
-from lidar_obstacles.errors import BagError, CloudFormatError, LasError
+from lidar_obstacles.errors import BagError, CloudFormatError, LasError, reason_key
 from lidar_obstacles.io.bags import CRS_TOPIC, POINTCLOUD2, BagReader, BagWriter
 from lidar_obstacles.ros import messages
 from lidar_obstacles.ros.offline import _progress, _serialize, cdr_of_record
@@ -176,7 +176,7 @@ def _bag_clouds(src: Path, out: Path, *, topic: str | None, storage: str, out_to
                 try:
                     msg_out, a, b = keep_of(reader.deserialize(record))
                 except CloudFormatError as exc:
-                    key = str(exc).split(":")[0][:80]
+                    key = reason_key(str(exc))
                     rejected[key] = rejected.get(key, 0) + 1
                     continue
                 bag.write(out_topic, record.stamp_ns, _serialize(msg_out))

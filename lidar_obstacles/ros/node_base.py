@@ -27,7 +27,7 @@ from sensor_msgs.msg import PointCloud2
 
 from lidar_obstacles.core.arrays import (release_free_memory, reuse_freed_memory,
                                          single_threaded_blas)
-from lidar_obstacles.errors import ConfigError, LidarObstaclesError
+from lidar_obstacles.errors import ConfigError, LidarObstaclesError, reason_key
 from lidar_obstacles.ros.params import declare_config, on_parameter_change
 from lidar_obstacles.ros.stages import Pose, pose_of_odometry
 
@@ -177,7 +177,7 @@ class PipelineNode(Node):
 
     def _reject(self, reason: str, counter: str = "rejected") -> None:
         self.stats[counter] += 1
-        self.reject_reasons[reason.split(":")[0][:80]] += 1
+        self.reject_reasons[reason_key(reason)] += 1
         self.get_logger().warning(f"dropped a cloud: {reason}",
                                   throttle_duration_sec=WARN_THROTTLE_S)
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
 from lidar_obstacles.core.arrays import release_free_memory
-from lidar_obstacles.errors import BagError, CloudFormatError, LasError
+from lidar_obstacles.errors import BagError, CloudFormatError, LasError, reason_key
 from lidar_obstacles.core.pipeline import GroundStep, ObstacleResult
 from lidar_obstacles.io.bags import CRS_TOPIC, ODOMETRY, POINTCLOUD2, BagReader, BagWriter, read_crs
 from lidar_obstacles.io.shared_pickle import (SharedPickle, discard_shared, from_shared,
@@ -350,7 +350,7 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                              if schedule is not None else [])
             except CloudFormatError as exc:
                 stats.rejected += 1
-                key = str(exc).split(":")[0][:80]
+                key = reason_key(str(exc))
                 stats.reject_reasons[key] = stats.reject_reasons.get(key, 0) + 1
                 continue
             if detector is None:  # (the detector's time is counted when its work is done)
@@ -735,6 +735,8 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
         infos = [t for t in reader.topics() if topics is None or t.topic in topics]
         if not infos:
             raise BagError(f"bag {src} has none of the requested topics")
+        if reader.count([t.topic for t in infos]) == 0:
+            raise BagError(f"bag {src} holds no message to play")
         rclpy.init(args=None)
         node = rclpy.create_node("lidar_obstacles_player", namespace=namespace or None)
         pubs = {}
