@@ -592,13 +592,18 @@ def _build(cls: type, flat: Mapping[str, Any], prefix: str = "") -> Any:
 
 
 def _flatten_mapping(data: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Dotted names of a nested section. ConfigError when one name is given twice with
+    different values (`tiling.size: 30` beside `tiling: {size: 20}`): which one would win
+    is not something a user should have to know."""
     out: dict[str, Any] = {}
     for key, value in data.items():
         name = f"{prefix}{key}"
-        if isinstance(value, Mapping):
-            out.update(_flatten_mapping(value, name + "."))
-        else:
-            out[name] = value
+        found = _flatten_mapping(value, name + ".") if isinstance(value, Mapping) else {
+            name: value}
+        for n, v in found.items():
+            if n in out and out[n] != v:
+                raise ConfigError(f"parameter '{n}' is given twice, as {out[n]!r} and {v!r}")
+            out[n] = v
     return out
 
 
@@ -630,8 +635,11 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str) -> T:
             if not isinstance(params, Mapping):
                 raise ConfigError(f"params file {path}: '{key}' ros__parameters is not a "
                                   "mapping of names to values")
-            if matches:
-                updates.update(_flatten_mapping(params))
+            if matches:  # (a later section overrides an earlier one, as in ROS)
+                try:
+                    updates.update(_flatten_mapping(params))
+                except ConfigError as exc:
+                    raise ConfigError(f"params file {path}: {exc}") from None
         else:
             raise ConfigError(f"params file {path}: '{key}' has no ros__parameters")
     known = {p.name for p in params_of(cls)}

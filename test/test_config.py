@@ -96,6 +96,11 @@ def test_params_file_forms(tmp_path):
         odd.write_text(text)
         with pytest.raises(ConfigError, match=what):
             load_params_file(odd, ObstacleDetectorConfig, "obstacle_detector")
+    twice = tmp_path / "twice.yaml"
+    twice.write_text("/**:\n  ros__parameters:\n    tiling.size: 30.0\n"
+                     "    tiling:\n      size: 20.0\n")
+    with pytest.raises(ConfigError, match="twice.yaml: parameter 'tiling.size' is given twice"):
+        load_params_file(twice, ObstacleDetectorConfig, "obstacle_detector")
     binary = tmp_path / "binary.yaml"
     binary.write_bytes(b"\xff\xfe\x00garbage\x80")
     with pytest.raises(ConfigError, match="binary.yaml"):
