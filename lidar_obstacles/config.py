@@ -14,9 +14,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Mapping, TypeVar
+from typing import Any, Callable, Iterator, Mapping, TypeVar
 
 from lidar_obstacles.errors import ConfigError
 from lidar_obstacles.io.atomic import atomic_write_text
@@ -36,6 +37,9 @@ class ParamSpec:
     read_only: bool = False
     tunable: bool = False  # part of the default search space of `lidar-obstacles tune`
     log_scale: bool = False  # tune samples it on a log scale
+    # A string's syntax: raises ConfigError for a value it cannot use, so that a bad one is
+    # refused when it is set, not when it is first used (a CRS at `save_dem`).
+    check: Callable[[str], Any] | None = None
 
     def range_text(self) -> str:
         if self.choices:
@@ -47,10 +51,27 @@ class ParamSpec:
 
 def param(default: Any, description: str, unit: str = "", *, min: float | None = None,
           max: float | None = None, choices: tuple[str, ...] = (), read_only: bool = False,
-          tunable: bool = False, log_scale: bool = False) -> Any:
+          tunable: bool = False, log_scale: bool = False,
+          check: Callable[[str], Any] | None = None) -> Any:
     """Declare one parameter field of a config section."""
-    spec = ParamSpec(description, unit, min, max, tuple(choices), read_only, tunable, log_scale)
+    spec = ParamSpec(description, unit, min, max, tuple(choices), read_only, tunable, log_scale,
+                     check)
     return field(default=default, metadata={"spec": spec})
+
+
+def parse_crs(text: str) -> tuple[int | None, str]:
+    """`EPSG:32632` / `32632` -> (32632, ""); WKT -> (None, wkt); "" -> (None, "").
+
+    Raises ConfigError for anything else."""
+    text = text.strip()
+    if not text:
+        return None, ""
+    match = re.fullmatch(r"(?:EPSG:)?(\d{4,6})", text, flags=re.IGNORECASE)
+    if match:
+        return int(match.group(1)), ""
+    if "[" in text:
+        return None, text
+    raise ConfigError(f"parameter 'export.crs': {text!r} is neither EPSG:<code> nor WKT")
 
 
 # --------------------------------------------------------------------------- sections
@@ -73,8 +94,8 @@ class InputConfig:
 
 @dataclass(frozen=True)
 class CloudInputConfig(InputConfig):
-    """The input of a node that publishes the points it got (the DEM has no use for a
-    point without coordinates)."""
+    """The input of the node that publishes every point it got, classified (the DEM and
+    the simplifier have no use for a point without coordinates)."""
 
     keep_non_finite: bool = param(
         False, "keep points with NaN/Inf coordinates in the output clouds (never "
@@ -90,14 +111,15 @@ class TilingConfig:
                            min=0.0, max=100.0)
     min_inlier_ratio: float = param(
         0.2, "a tile whose ground fit keeps fewer points than this share is split again",
-        min=0.0, max=1.0)
+        min=0.0, max=1.0, unit="1")
     max_residual: float = param(
         1.0, "a tile whose ground residual spread (robust std) exceeds this is split again",
         "m", min=0.01, max=50.0)
     max_relief: float = param(
         15.0, "a tile whose ground relief (max - min ground height) exceeds this is split again",
         "m", min=0.5, max=500.0)
-    max_depth: int = param(2, "how many times a poor tile may be split in four", min=0, max=5)
+    max_depth: int = param(2, "how many times a poor tile may be split in four", "splits",
+                           min=0, max=5)
     min_size: float = param(10.0, "tiles are never split below this edge", "m",
                             min=1.0, max=1000.0)
 
@@ -111,7 +133,7 @@ class GroundConfig:
     cell: float = param(1.0, "hybrid: raster cell of the lowest-point grid", "m",
                         min=0.1, max=10.0, tunable=True)
     slope: float = param(0.2, "hybrid: terrain slope (rise/run) the opening keeps as ground",
-                         min=0.01, max=2.0, tunable=True)
+                         min=0.01, max=2.0, tunable=True, unit="rise/run")
     window: float = param(18.0, "hybrid: largest opening radius, about half the largest "
                           "building", "m", min=1.0, max=200.0, tunable=True)
     threshold: float = param(0.5, "hybrid: points this close above the ground surface (flat "
@@ -128,7 +150,7 @@ class TinConfig:
     max_angle: float = param(20.0, "a point joins when the three vertex angles asin(d/S) are "
                              "below this", "deg", min=0.5, max=60.0, tunable=True)
     max_iterations: int = param(40, "densification stops after this many rounds even if "
-                                "points still join", min=1, max=500)
+                                "points still join", min=1, max=500, unit="rounds")
     min_edge: float = param(0.5, "triangles are not densified once their edges are shorter "
                             "than this", "m", min=0.0, max=50.0)
 
@@ -139,10 +161,10 @@ class RansacConfig:
         0.3, "inliers of the plane, |ax+by+cz-d| below this, are ground", "m",
         min=0.01, max=10.0, tunable=True)
     probability: float = param(0.99, "success probability p of k = log(1-p)/log(1-w^3)",
-                               min=0.5, max=0.999999)
+                               min=0.5, max=0.999999, unit="1")
     max_trials: int = param(1000, "upper bound on the adaptive trial count", min=1,
-                            max=100000)
-    seed: int = param(0, "random seed, for repeatable results", min=0, max=2**31 - 1)
+                            max=100000, unit="trials")
+    seed: int = param(0, "random seed, for repeatable results", min=0, max=2**31 - 1, unit="1")
 
 
 @dataclass(frozen=True)
@@ -179,7 +201,7 @@ class ObstaclesConfig:
                                   "several scan lines of a roof", "m", min=0.2, max=10.0,
                                   tunable=True)
     wire_linearity: float = param(0.8, "PCA linearity (l1-l2)/l1 above which a neighbourhood "
-                                  "is a wire", min=0.0, max=1.0, tunable=True)
+                                  "is a wire", min=0.0, max=1.0, tunable=True, unit="1")
     wire_max_slope: float = param(15.0, "wires are at most this steep", "deg", min=0.0,
                                   max=90.0)
     wire_min_clearance: float = param(3.0, "wires hang at least this high above ground with "
@@ -210,21 +232,22 @@ class FeaturesConfig:
                           "`obstacle_edges` (costs time per message: off by default)")
     neighbours: int = param(14, "k nearest neighbours per point; the point and each pair of "
                             "them make a triangle whose normal is a point of the Gaussian "
-                            "map (the paper: 8-32, 14 used)", min=4, max=32)
+                            "map (the paper: 8-32, 14 used)", min=4, max=32, unit="points")
     max_clusters: int = param(4, "a point whose triangle normals form 2..this many "
                               "clusters is a feature (crease, edge, corner); one cluster is "
-                              "a plane, more is rough", min=2, max=8)
+                              "a plane, more is rough", min=2, max=8, unit="clusters")
     plane_angle: float = param(10.0, "triangle normals all within this angle of their mean "
                                "make one cluster: a plane, not a feature", "deg", min=0.5,
                                max=60.0)
     min_silhouette: float = param(0.5, "the best mean silhouette must reach this for the "
                                   "clusters to count; below it the normals have no clear "
-                                  "clusters and the point is no feature", min=-1.0, max=1.0)
+                                  "clusters and the point is no feature", "1",
+                                  min=-1.0, max=1.0)
     restarts: int = param(1, "K-means++ runs per cluster count and point, the lowest cost "
                           "kept; 3 runs change 3 % of the decisions on AHN4 roofs (10 000 "
                           "building points, `fast`: 19.8 % feature points against 18.9 %) "
-                          "at twice the time", min=1, max=100)
-    seed: int = param(0, "random seed", min=0, max=2**31 - 1)
+                          "at twice the time", min=1, max=100, unit="runs")
+    seed: int = param(0, "random seed", min=0, max=2**31 - 1, unit="1")
     method: str = param(
         "fast", "`faithful` the paper's: every point's triangle normals clustered, float64; "
         "`fast` float32 and points flat by PCA (l3/l2 < 0.05) taken as planes without "
@@ -250,22 +273,22 @@ class SimplifyConfig:
         "`keep` of the points spread over every normal cluster and over space",
         choices=("normal_cluster", "normal_space"))
     keep: float = param(0.18, "`normal_space`: share of the points kept (the paper's best "
-                        "cluster kept 18 %)", min=0.001, max=1.0)
+                        "cluster kept 18 %)", min=0.001, max=1.0, unit="1")
     first_returns: bool = param(True, "drop the later returns of multi-return pulses first "
                                 "(the paper's step 1; clouds without return numbers keep "
                                 "every point)")
     neighbours: int = param(10, "K nearest neighbours whose covariance gives a point's "
-                            "normal (the paper: 10)", min=3, max=64)
+                            "normal (the paper: 10)", min=3, max=64, unit="points")
     max_k: int = param(10, "the elbow sweep over the normals tries k = 1..max_k", min=2,
-                       max=30)
+                       max=30, unit="clusters")
     restarts: int = param(3, "K-means++ runs per k, the lowest SSE kept (the paper: 100; on "
                           "50 000 AHN4 first returns 3 runs on 5 000 normals gave the same k "
                           "and r, 0.976 vs 0.975, in 118 ms instead of 767 ms for 10 runs on "
-                          "20 000)", min=1, max=1000)
+                          "20 000)", min=1, max=1000, unit="runs")
     max_iter: int = param(3000, "Lloyd iterations per run (the paper: 3000)", min=1,
-                          max=100000)
+                          max=100000, unit="iterations")
     tol: float = param(1e-4, "relative centre shift that ends a run (the paper: 1e-4)",
-                       min=1e-12, max=1.0, log_scale=True)
+                       min=1e-12, max=1.0, log_scale=True, unit="1")
     validation_cell: float = param(
         0.0, "raster cell of the TIN correlation that judges the simplified cloud (0: the "
         "mean point spacing, sqrt(hull area / N), as the paper's 0.125 m was on its ~70 "
@@ -279,7 +302,7 @@ class SimplifyConfig:
                            "correlation of the kept points with all points (0.9 s per 50 000 "
                            "points, twice the simplification itself; NaN when off). "
                            "`normal_cluster` always does: it is its choice rule")
-    seed: int = param(0, "random seed", min=0, max=2**31 - 1)
+    seed: int = param(0, "random seed", min=0, max=2**31 - 1, unit="1")
 
 
 @dataclass(frozen=True)
@@ -303,7 +326,7 @@ class DemConfig:
         "2.01 -> 1.50 m, samp52 0.64 -> 0.50 m, but low vegetation on slopes comes in: "
         "samp51 0.21 -> 0.31 m; ISPRS mean 0.69 -> 0.66 m; on dense scans (AHN) a few cm "
         "and no change; 0: a fixed band)",
-        "", min=0.0, max=10.0)
+        "1", min=0.0, max=10.0)
     patch_area: float = param(
         400.0, "with the `detector` source, ground patches cut off from the main ground "
         "surface by a step all around and at most this large are left out of the DEM when "
@@ -338,9 +361,9 @@ class DemConfig:
         20.0, "empty cells are interpolated only within this distance of a measured cell "
         "(no extrapolation beyond it)", "m", min=0.0, max=10000.0)
     idw_neighbours: int = param(8, "`idw`: nearest samples averaged per cell", min=1,
-                                max=256)
+                                max=256, unit="points")
     idw_power: float = param(2.0, "`idw`: weights are 1 / distance^power", min=0.1,
-                             max=10.0)
+                             max=10.0, unit="1")
 
 
 @dataclass(frozen=True)
@@ -348,12 +371,13 @@ class KmeansConfig:
     features: str = param("intensity", "what ground clustering runs on: `intensity` (the "
                           "paper), `two_stage` (XYZ then intensity) or `geometric`",
                           choices=("intensity", "two_stage", "geometric"))
-    max_k: int = param(10, "the elbow sweep tries k = 1..max_k", min=2, max=30)
-    restarts: int = param(10, "K-means runs per k; the lowest SSE is kept", min=1, max=1000)
-    max_iter: int = param(300, "Lloyd iterations per run", min=1, max=10000)
+    max_k: int = param(10, "the elbow sweep tries k = 1..max_k", min=2, max=30, unit="clusters")
+    restarts: int = param(10, "K-means runs per k; the lowest SSE is kept", "runs", min=1,
+                          max=1000)
+    max_iter: int = param(300, "Lloyd iterations per run", min=1, max=10000, unit="iterations")
     tol: float = param(1e-4, "relative centre shift that ends a run", min=1e-12, max=1.0,
-                       log_scale=True)
-    seed: int = param(0, "random seed", min=0, max=2**31 - 1)
+                       log_scale=True, unit="1")
+    seed: int = param(0, "random seed", min=0, max=2**31 - 1, unit="1")
     ground_window: float = param(
         10.0, "clusters are ranked by their points' median height above the lowest point "
         "within about this distance", "m", min=0.5, max=500.0)
@@ -366,7 +390,7 @@ class KmeansConfig:
         "height above the TIN of per-window minima beyond which a point is dropped", "m",
         min=0.01, max=50.0)
     tin_rounds: int = param(5, "TIN outlier checks are repeated at most this often",
-                            min=0, max=100)
+                            min=0, max=100, unit="rounds")
     densify_distance: float = param(
         0.15, "after the checks, points of any cluster within this vertical distance of the "
         "ground's TIN join the ground (0: off)", "m", min=0.0, max=10.0)
@@ -382,18 +406,18 @@ class ThinningConfig:
                         "where the terrain bends", choices=("random", "curvature"))
     keep: float = param(1.0, "share of each message's ground points that go into the DEM "
                         "(the paper kept 0.2; fewer points, faster interpolation, a coarser "
-                        "DEM)", min=0.01, max=1.0)
+                        "DEM)", min=0.01, max=1.0, unit="1")
     check_points: int = param(100, "ground points of each message held out of the DEM to "
                               "measure it: the diagnostics report its RMSE at those of the "
                               "last 20 messages (0: none)", "points", min=0, max=100000)
-    seed: int = param(0, "random seed", min=0, max=2**31 - 1)
+    seed: int = param(0, "random seed", min=0, max=2**31 - 1, unit="1")
 
 
 @dataclass(frozen=True)
 class KrigingConfig:
     neighbours: int = param(16, "nearest samples per cell (cost grows as its square: 64 "
                             "took 2.5 s for 10 000 samples into 200 x 200 cells, 128 took "
-                            "9 s)", min=3, max=64)
+                            "9 s)", min=3, max=64, unit="points")
     variogram: str = param("spherical", "variogram model fitted to the samples",
                            choices=("spherical", "exponential", "gaussian", "linear"))
 
@@ -402,12 +426,13 @@ class KrigingConfig:
 class RbfConfig:
     neighbours: int = param(32, "nearest samples per local system (cost grows as its "
                             "square: 64 took 2.8 s and 0.75 GB for 10 000 samples into "
-                            "200 x 200 cells, 128 took 10 s and 2.7 GB)", min=3, max=64)
+                            "200 x 200 cells, 128 took 10 s and 2.7 GB)", "points", min=3,
+                            max=64)
     kernel: str = param("thin_plate_spline", "radial kernel",
                         choices=("thin_plate_spline", "multiquadric", "gaussian", "linear",
                                  "cubic"))
     smoothing: float = param(0.0, "smoothing added to the kernel diagonal", min=0.0,
-                             max=1000.0)
+                             max=1000.0, unit="1")
 
 
 @dataclass(frozen=True)
@@ -415,8 +440,8 @@ class RbfnnConfig:
     goal: float = param(0.02, "training stops when the mean squared error reaches this",
                         "m^2", min=1e-8, max=100.0, log_scale=True)
     spread: float = param(1.0, "spread of the Gaussian units (in standardised inputs)",
-                          min=0.01, max=100.0)
-    max_neurons: int = param(200, "units added at most", min=1, max=5000)
+                          min=0.01, max=100.0, unit="1")
+    max_neurons: int = param(200, "units added at most", min=1, max=5000, unit="units")
     max_train: int = param(10000, "the network trains on at most this many random samples "
                            "(training costs samples x units^2; the paper trained on 9 724)",
                            "points", min=10, max=10_000_000)
@@ -425,7 +450,8 @@ class RbfnnConfig:
 @dataclass(frozen=True)
 class ExportConfig:
     path: str = param("dem.tif", "where `save_dem` writes the GeoTIFF")
-    crs: str = param("", "CRS written into the GeoTIFF, e.g. `EPSG:32632` (empty: none)")
+    crs: str = param("", "CRS written into the GeoTIFF, e.g. `EPSG:32632` or WKT (empty: "
+                     "none)", check=parse_crs)
 
 
 # --------------------------------------------------------------------------- node configs
@@ -474,7 +500,6 @@ class DemBuilderConfig(NodeInputConfig):
 
 @dataclass(frozen=True)
 class CloudSimplifierConfig(NodeInputConfig):
-    input: CloudInputConfig = field(default_factory=CloudInputConfig)
     simplify: SimplifyConfig = field(default_factory=SimplifyConfig)
 
 
@@ -559,6 +584,8 @@ def coerce(info: ParamInfo, value: Any) -> Any:
         if spec.choices and value not in spec.choices:
             raise ConfigError(f"parameter '{info.name}': {value!r} is not "
                               f"{spec.range_text()}")
+        if spec.check is not None:
+            spec.check(value)
         return value
     if spec.min is not None and value < spec.min or spec.max is not None and value > spec.max:
         raise ConfigError(f"parameter '{info.name}': {value!r} is outside its "
@@ -607,12 +634,15 @@ def _flatten_mapping(data: Mapping[str, Any], prefix: str = "") -> dict[str, Any
     return out
 
 
-def load_params_file(path: str | Path, cls: type[T], node_name: str) -> T:
-    """Read a ROS 2 params YAML (``/**:`` or ``<node>:`` with ``ros__parameters``).
+def load_params_file(path: str | Path, cls: type[T], node_name: str, *,
+                     base: T | None = None) -> T:
+    """Read a ROS 2 params YAML (``/**:``, ``<node>:`` or ``/**/<node>:`` with
+    ``ros__parameters``) over `base` (default: the schema's defaults).
 
     Nested sections and dotted keys are both accepted. Raises ConfigError for a missing
     file, bad YAML, unknown parameters or invalid values.
     """
+    base = cls() if base is None else base
     import yaml
 
     path = Path(path)
@@ -623,7 +653,7 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str) -> T:
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
         raise ConfigError(f"params file {path}: {exc}".splitlines()[0]) from None
     if data is None:
-        return cls()
+        return base
     if not isinstance(data, Mapping):
         raise ConfigError(f"params file {path}: expected a mapping at the top")
     updates: dict[str, Any] = {}
@@ -658,7 +688,7 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str) -> T:
             except ConfigError as exc:
                 raise ConfigError(f"params file {path}: {exc}") from None
     try:
-        return replace(cls(), {k: v for k, v in updates.items() if k in known})
+        return replace(base, {k: v for k, v in updates.items() if k in known})
     except ConfigError as exc:
         raise ConfigError(f"params file {path}: {exc}") from None
 
@@ -728,7 +758,7 @@ def write_config_files(folder: str | Path) -> list[Path]:
         header = (f"# Parameters of `{node}`, generated from lidar_obstacles/config.py\n"
                   f"# (python -m lidar_obstacles.config). Each line: default, then\n"
                   f"# description [unit] and range. Load with --ros-args --params-file.\n")
-        atomic_write_text(path, header + dump_ros_yaml(cls(), node))
+        atomic_write_text(path, header + dump_ros_yaml(cls(), f"/**/{node}"))
         written.append(path)
     return written
 

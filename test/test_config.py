@@ -34,9 +34,19 @@ def test_every_parameter_is_documented_with_range_or_choices():
 def test_config_files_are_generated_from_the_schema():
     for node, cls in NODE_CONFIGS.items():
         text = (REPO / "config" / f"{node}.yaml").read_text()
-        assert dump_ros_yaml(cls(), node) in text, (
+        assert dump_ros_yaml(cls(), f"/**/{node}") in text, (
             f"config/{node}.yaml is stale: run `python -m lidar_obstacles.config`")
         assert load_params_file(REPO / "config" / f"{node}.yaml", cls, node) == cls()
+
+
+def test_every_number_has_a_unit():
+    # the contract: a description, a unit and a range in every ParameterDescriptor
+    for cls in NODE_CONFIGS.values():
+        for p in params_of(cls):
+            assert p.spec.description
+            if p.type in (int, float):
+                assert p.spec.unit, p.name
+                assert p.spec.min is not None and p.spec.max is not None, p.name
 
 
 def test_parameter_docs_are_generated_from_the_schema():

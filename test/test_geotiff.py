@@ -7,9 +7,10 @@ import stat
 import numpy as np
 import pytest
 
+from lidar_obstacles.config import DemBuilderConfig, parse_crs, replace
 from lidar_obstacles.core.dem import DemGrid, empty_grid
 from lidar_obstacles.errors import ConfigError
-from lidar_obstacles.io.geotiff import (ExportError, hillshade, parse_crs, read_geotiff,
+from lidar_obstacles.io.geotiff import (ExportError, hillshade, read_geotiff,
                                         write_geotiff, write_hillshade_png)
 
 
@@ -82,6 +83,10 @@ def test_parse_crs():
     assert parse_crs('GEOGCS["WGS 84"]') == (None, 'GEOGCS["WGS 84"]')
     with pytest.raises(ConfigError):
         parse_crs("UTM 32")
+    # refused when set (a file, -p, set_parameters), not first at save_dem
+    assert replace(DemBuilderConfig(), {"export.crs": "epsg:32632"}).export.crs == "epsg:32632"
+    with pytest.raises(ConfigError, match="export.crs.*'foo' is neither"):
+        replace(DemBuilderConfig(), {"export.crs": "foo"})
 
 
 def test_hillshade_png(tmp_path):

@@ -20,7 +20,7 @@ rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from nav_msgs.msg import MapMetaData, OccupancyGrid  # noqa: E402
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue  # noqa: E402
-from rcl_interfaces.srv import SetParameters  # noqa: E402
+from rcl_interfaces.srv import GetParameters, SetParameters  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
@@ -166,6 +166,8 @@ def test_nodes_process_a_played_flight(flight, ros_node, tmp_path):
         assert _spin_until(ros_node, lambda: dem_status().get("check_n", "0") != "0", 10)
         assert int(dem_status()["check_n"]) >= 100, dem_status()
         assert 0.0 < float(dem_status()["check_rmse_m"]) < 0.3, dem_status()
+        # points out: the ground that went into the DEM, not the cloud again
+        assert 0 < int(dem_status()["points_out"]) < int(dem_status()["points_in"])
     finally:
         for s in subs:
             ros_node.destroy_subscription(s)
@@ -256,6 +258,30 @@ def test_a_shared_params_file_with_the_other_nodes_parameters_is_fine(tmp_path):
         pass  # still running: it started
     rc, log = _stop(proc)
     assert rc == 0 and "ready" in log, log
+
+
+def test_the_shipped_params_file_reaches_a_namespaced_node(ros_node, tmp_path):
+    # config/obstacle_detector.yaml, one value changed and written as an integer: the node
+    # runs under /uav1 (as _start does), where a file keyed `obstacle_detector:` was ignored
+    # without a word, and an integer for a double parameter stopped it
+    text = (REPO / "config" / "obstacle_detector.yaml").read_text()
+    assert "      size: 40.0  #" in text
+    params = tmp_path / "od.yaml"
+    params.write_text(text.replace("      size: 40.0  #", "      size: 33  #"))
+    proc = _start("lidar_obstacles.ros.obstacle_detector", "--params-file", str(params))
+    try:
+        node = f"{NS}/obstacle_detector"
+        got = _call(ros_node, GetParameters, f"{node}/get_parameters",
+                    GetParameters.Request(names=["tiling.size"]), timeout=60)
+        assert got.values[0].type == ParameterType.PARAMETER_DOUBLE
+        assert got.values[0].double_value == 33.0
+        # rclpy's own parameters can be set too (they are not the schema's to judge)
+        sim = _call(ros_node, SetParameters, f"{node}/set_parameters", SetParameters.Request(
+            parameters=[_param("use_sim_time", False)]))
+        assert sim.results[0].successful, sim.results[0].reason
+    finally:
+        rc, log = _stop(proc)
+    assert rc == 0, log
 
 
 def test_cloud_simplifier_node(ros_node):

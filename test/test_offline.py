@@ -94,6 +94,12 @@ def test_sensor_frame_flight_needs_and_uses_odometry(tmp_path):
     b = clouds(tmp_path / "out_map", "/ground")[-1]
     agree = np.intersect1d(a["point_id"], b["point_id"]).size / max(len(b), 1)
     assert agree > 0.97
+    # Clouds already in the odometry's frame pass unchanged with use_odometry (they were
+    # moved a second time, by the whole pose).
+    run_cli("replay", mapped, tmp_path / "out_map_odom", "--params-file", params, "--no-dem")
+    for x, y in zip(clouds(tmp_path / "out_map", "/ground"),
+                    clouds(tmp_path / "out_map_odom", "/ground"), strict=True):
+        assert x.tobytes() == y.tobytes()
 
 
 def test_replay_is_deterministic(sim_bag, tmp_path):
@@ -228,6 +234,13 @@ def test_export_dem_lands_on_survey_coordinates(tmp_path):
     # the grid is aligned to whole cells and cut to where there is elevation
     assert -1.0 < las["x"].min() - x0 < 1.0 and -1.0 < y_top - las["y"].max() < 1.0
     assert (tmp_path / "dem_hillshade.png").stat().st_size > 1000
+    # a params file that does not set dem.extent still gives the whole survey (it gave the
+    # rolling window of the last 200 m)
+    params = tmp_path / "tin.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    dem.interpolation: tin\n")
+    again = run_cli("export-dem", tmp_path / "bag", tmp_path / "tin.tif", "--params-file", params)
+    assert (again["rows"], again["cols"]) == (summary["rows"], summary["cols"])
+    assert summary["rows"] * summary["resolution"] > 250  # more than one window
 
 
 @pytest.mark.parametrize("args, expected", [

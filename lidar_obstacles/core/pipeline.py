@@ -330,6 +330,7 @@ class DemPipeline:
         self._ground: StreamingGround | None = None  # the `detector` source's, on first use
         self._thin_rng = np.random.default_rng(self.cfg.thinning.seed)
         self.checks = CheckPoints(CHECK_MESSAGES * self.cfg.thinning.check_points)
+        self.last_added = 0  # ground points the last cloud put into the DEM (diagnostics)
 
     def reconfigure(self, cfg: DemBuilderConfig) -> None:
         from lidar_obstacles.core.dem import CheckPoints, RollingDem
@@ -369,6 +370,7 @@ class DemPipeline:
         t0 = time.perf_counter()
         xyz = points_xyz(xyz, "DEM builder")
         if len(xyz) == 0:
+            self.last_added = 0
             return {"ground": 0.0, "update": 0.0, "total": 0.0}
         ground = self.ground_of(xyz, stamp=stamp, intensity=intensity)
         t1 = time.perf_counter()
@@ -396,6 +398,7 @@ class DemPipeline:
             ground_xyz = ground_xyz[thinned.keep]
         vehicle_xy = None if vehicle_xyz is None else np.asarray(vehicle_xyz, float)[:2]
         self.dem.update(ground_xyz, vehicle_xy, stamp)
+        self.last_added = len(ground_xyz)
         t1 = time.perf_counter()
         return {"ground": 0.0, "update": t1 - t0, "total": t1 - t0}
 

@@ -8,7 +8,6 @@ a reader never sees half a file and a failure leaves nothing behind.
 """
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -16,7 +15,7 @@ from typing import Callable
 import numpy as np
 
 from lidar_obstacles.core.dem import DemGrid
-from lidar_obstacles.errors import ConfigError, LidarObstaclesError
+from lidar_obstacles.errors import LidarObstaclesError
 from lidar_obstacles.io.atomic import atomic_write
 
 MODEL_PIXEL_SCALE = 33550
@@ -34,21 +33,6 @@ PROJECTED_CS_TYPE = 3072
 
 class ExportError(LidarObstaclesError):
     """A DEM that cannot be written (empty grid, unwritable path)."""
-
-
-def parse_crs(text: str) -> tuple[int | None, str]:
-    """`EPSG:32632` / `32632` -> (32632, ""); WKT -> (None, wkt); "" -> (None, "").
-
-    Raises ConfigError for anything else."""
-    text = text.strip()
-    if not text:
-        return None, ""
-    match = re.fullmatch(r"(?:EPSG:)?(\d{4,6})", text, flags=re.IGNORECASE)
-    if match:
-        return int(match.group(1)), ""
-    if "[" in text:
-        return None, text
-    raise ConfigError(f"parameter 'export.crs': {text!r} is neither EPSG:<code> nor WKT")
 
 
 def _atomic_write(path: str | Path, write: Callable[[str], None]) -> Path:

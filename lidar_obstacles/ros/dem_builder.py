@@ -39,7 +39,7 @@ class DemBuilderNode(PipelineNode):
     def process_cloud(self, msg: PointCloud2, pose: Pose | None) -> int:
         stats = self.stage.process(msg, pose)
         self._dirty = True
-        return stats["points_in"]
+        return stats["points_out"]  # the ground points that went into the DEM
 
     def _publish_dem(self) -> None:
         if not self._dirty:
@@ -55,7 +55,8 @@ class DemBuilderNode(PipelineNode):
                 for k, v in self.stage.check_stats.items()}
 
     def _save_dem(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        from lidar_obstacles.io.geotiff import parse_crs, write_geotiff
+        from lidar_obstacles.config import parse_crs
+        from lidar_obstacles.io.geotiff import write_geotiff
 
         grid = self.stage.grid()
         path = self.cfg.export.path

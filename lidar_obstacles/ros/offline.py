@@ -78,7 +78,9 @@ def simulate(out: Path, *, scene: str, seed: int, duration: float, frame: str,
             stamp_ns = int(round(f.stamp * 1e9))
             # Odometry twist is in the child frame; the simulator gives it in the map frame.
             rot = Pose(stamp_ns, f.position, f.orientation, "map").rotation()
-            odom = messages.odometry(stamp_ns, "map", cloud_frame, f.position, f.orientation,
+            # REP-105: the pose of the body ("lidar", the clouds' frame in sensor mode) in
+            # "map"; a map-frame flight's clouds need no transform and pass unchanged.
+            odom = messages.odometry(stamp_ns, "map", "lidar", f.position, f.orientation,
                                      rot.T @ f.velocity)
             bag.write("/odom", stamp_ns, _serialize(odom))
             hdr = messages.header(stamp_ns, cloud_frame)
@@ -188,13 +190,16 @@ class ReplayStats:
                 "reject_reasons": self.reject_reasons}
 
 
-def load_configs(params_file: Path | None) -> tuple[ObstacleDetectorConfig, DemBuilderConfig]:
+def load_configs(params_file: Path | None, dem_base: DemBuilderConfig | None = None
+                 ) -> tuple[ObstacleDetectorConfig, DemBuilderConfig]:
+    """Both nodes' configs from a params file (or the defaults); the DEM's over `dem_base`."""
     from lidar_obstacles.config import load_params_file
 
+    dem_base = dem_base or DemBuilderConfig()
     if params_file is None:
-        return ObstacleDetectorConfig(), DemBuilderConfig()
+        return ObstacleDetectorConfig(), dem_base
     return (load_params_file(params_file, ObstacleDetectorConfig, "obstacle_detector"),
-            load_params_file(params_file, DemBuilderConfig, "dem_builder"))
+            load_params_file(params_file, DemBuilderConfig, "dem_builder", base=dem_base))
 
 
 def _odom_topics(reader: BagReader) -> list[str]:
@@ -660,12 +665,11 @@ def crop_to_data(grid):
 def export_dem(src: Path, out: Path, *, topic: str | None = None,
                params_file: Path | None = None, crs: str | None = None) -> dict:
     """Build the DEM of a whole bag offline; write a GeoTIFF and a hillshade PNG beside it."""
-    from lidar_obstacles.config import replace
-    from lidar_obstacles.io.geotiff import parse_crs, write_geotiff, write_hillshade_png
+    from lidar_obstacles.config import parse_crs, replace
+    from lidar_obstacles.io.geotiff import write_geotiff, write_hillshade_png
 
-    _, dem_cfg = load_configs(params_file)
-    if params_file is None:
-        dem_cfg = replace(dem_cfg, {"dem.extent": 0.0})  # offline: the whole survey
+    # offline the DEM covers the whole survey, unless the params file sets `dem.extent`
+    _, dem_cfg = load_configs(params_file, replace(DemBuilderConfig(), {"dem.extent": 0.0}))
     stats = ReplayStats()
     stage = DemStage(dem_cfg)
     with BagReader(src) as reader:

@@ -12,12 +12,19 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 
 from lidar_obstacles.config import NODE_CONFIGS, ParamInfo, params_of, replace
 from lidar_obstacles.errors import ConfigError
 
 # Parameters rclpy itself declares or reads on every node.
 ROS_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
+
+
+def _ros_own(name: str) -> bool:
+    """A parameter rclpy declares or reads itself (not in the schema)."""
+    return name in ROS_PARAMETERS or name.startswith("qos_overrides.")
+
 
 _TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
           float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
@@ -45,7 +52,15 @@ def declare_config(node: Node, cls: type) -> Any:
     Raises ConfigError when an override (``-p``, ``--params-file``) is invalid.
     """
     values = {}
+    overrides = node._parameter_overrides  # (private in rclpy: no public accessor in Jazzy)
     for info in params_of(cls):
+        given = overrides.get(info.name)
+        if info.type is float and given is not None and given.type_ == Parameter.Type.INTEGER:
+            # `-p tiling.size:=40` or `size: 40` in a file: rcl reads an integer, which
+            # rclpy refuses for a double. `replay` and `evaluate` read the same file as 40.0,
+            # so the node does too.
+            overrides[info.name] = Parameter(info.name, Parameter.Type.DOUBLE,
+                                             float(given.value))
         try:
             param = node.declare_parameter(info.name, info.default, descriptor(info))
         except Exception as exc:  # rclpy raises its own types for type and range errors
@@ -54,10 +69,7 @@ def declare_config(node: Node, cls: type) -> Any:
     # As `load_params_file`: a shared params file may carry another node's parameters,
     # but a name no node knows is a typo the user must hear of, not a silent default.
     all_known = {p.name for c in NODE_CONFIGS.values() for p in params_of(c)}
-    # (rclpy keeps the overrides in a private dict: it has no public accessor in Jazzy)
-    unknown = sorted(n for n in node._parameter_overrides
-                     if n not in all_known and n not in ROS_PARAMETERS
-                     and not n.startswith("qos_overrides."))
+    unknown = sorted(n for n in overrides if n not in all_known and not _ros_own(n))
     if unknown:
         raise ConfigError(f"unknown parameter '{unknown[0]}' (see docs/parameters.md)")
     return replace(cls(), values)
@@ -69,8 +81,11 @@ def on_parameter_change(node: Node, get_cfg: Callable[[], Any],
     message, rejected ones leave everything as it was and say why."""
 
     def callback(params: list) -> SetParametersResult:
+        ours = {p.name: p.value for p in params if not _ros_own(p.name)}
+        if not ours:
+            return SetParametersResult(successful=True)  # use_sim_time: rclpy's own
         try:
-            new_cfg = replace(get_cfg(), {p.name: p.value for p in params})
+            new_cfg = replace(get_cfg(), ours)
         except ConfigError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         set_cfg(new_cfg)

@@ -61,7 +61,8 @@ class Prepared:
 
 def prepare(msg, *, keep_non_finite: bool, max_points: int, pose: Pose | None,
             transform: bool) -> Prepared:
-    """Decode a PointCloud2 and, when `transform`, move it into the pose's frame.
+    """Decode a PointCloud2 and, when `transform`, move it into the pose's frame (a
+    cloud already in that frame, the odometry's `header.frame_id`, passes unchanged).
 
     Raises CloudFormatError for malformed or oversize clouds. Non-finite points are dropped
     unless `keep_non_finite`; kept ones stay in the output but are never ground.
@@ -73,7 +74,7 @@ def prepare(msg, *, keep_non_finite: bool, max_points: int, pose: Pose | None,
     points = read_points(msg, keep_non_finite=keep_non_finite).reshape(-1)
     xyz = xyz_of(points)
     frame = msg.header.frame_id
-    if transform and pose is not None:
+    if transform and pose is not None and frame != pose.frame_id:
         xyz = xyz @ pose.rotation().T + pose.position
         points = points.copy()
         for i, axis in enumerate("xyz"):
@@ -82,10 +83,10 @@ def prepare(msg, *, keep_non_finite: bool, max_points: int, pose: Pose | None,
     return Prepared(points, xyz, messages.stamp_ns_of(msg.header), frame)
 
 
-def prepare_for(msg, cfg: ObstacleDetectorConfig | CloudSimplifierConfig, pose: Pose | None
+def prepare_for(msg, cfg: ObstacleDetectorConfig, pose: Pose | None
                 ) -> tuple[Prepared, np.ndarray]:
-    """`prepare` with the input settings of a node that publishes points, and which points
-    are finite, (N,) bool."""
+    """`prepare` with the detector's input settings, and which points are finite, (N,)
+    bool."""
     prep = prepare(msg, keep_non_finite=cfg.input.keep_non_finite,
                    max_points=cfg.input.max_points, pose=pose, transform=cfg.use_odometry)
     return prep, all_columns(np.isfinite(prep.xyz))
@@ -226,8 +227,8 @@ class DemStage:
         timings = self.pipeline.process(prep.xyz, stamp=prep.stamp_ns * 1e-9,
                                         vehicle_xyz=pose.position if pose is not None else None,
                                         intensity=_attr(prep.points, "intensity"))
-        return {"points_in": len(prep.points), "timings": timings,
-                "seconds": time.perf_counter() - t0}
+        return {"points_in": len(prep.points), "points_out": self.pipeline.last_added,
+                "timings": timings, "seconds": time.perf_counter() - t0}
 
     def add_ground(self, ground_xyz: np.ndarray, ground_hag: np.ndarray, *, stamp_ns: int,
                    frame_id: str, vehicle_xyz: np.ndarray | None = None) -> dict:
@@ -240,8 +241,8 @@ class DemStage:
         timings = self.pipeline.add_ground(ground_xyz, stamp=stamp_ns * 1e-9,
                                            vehicle_xyz=vehicle_xyz,
                                            height_above_ground=ground_hag)
-        return {"points_in": len(ground_xyz), "timings": timings,
-                "seconds": time.perf_counter() - t0}
+        return {"points_in": len(ground_xyz), "points_out": self.pipeline.last_added,
+                "timings": timings, "seconds": time.perf_counter() - t0}
 
     def grid(self) -> DemGrid:
         """The current DEM (its empty cells near new data filled first)."""
@@ -281,9 +282,10 @@ class SimplifierStage:
 
         cfg = self.cfg
         t0 = time.perf_counter()
-        prep, finite = prepare_for(msg, cfg, pose)
-        points = prep.points[finite]
-        result = simplify(prep.xyz[finite], cfg=cfg.simplify,
+        prep = prepare(msg, keep_non_finite=False, max_points=cfg.input.max_points,
+                       pose=pose, transform=cfg.use_odometry)
+        points = prep.points
+        result = simplify(prep.xyz, cfg=cfg.simplify,
                           intensity=_attr(points, "intensity"),
                           return_number=_attr(points, "return_number"), rng=self.rng)
         hdr = messages.header(prep.stamp_ns, prep.frame_id)
