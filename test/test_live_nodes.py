@@ -352,8 +352,8 @@ def test_a_bug_on_one_cloud_does_not_take_the_node_down(ros_node, monkeypatch):
         monkeypatch.setattr(node.stage, "process", lambda *a: 1 / 0)
         msg = PointCloud2(height=1, width=1, point_step=12, row_step=12, is_dense=True,
                           data=bytes(12))
-        node._on_points(msg)
-        node._on_points(msg)
+        node._handle(msg)  # (what the worker thread does with each cloud of the inbox)
+        node._handle(msg)
         assert node.stats["failed"] == 2 and node.stats["processed"] == 0
         assert node.reject_reasons["internal error: ZeroDivisionError"] == 2
         monkeypatch.undo()  # the next cloud goes through again
@@ -362,7 +362,33 @@ def test_a_bug_on_one_cloud_does_not_take_the_node_down(ros_node, monkeypatch):
         rng = np.random.default_rng(0)
         pts = np.zeros(2000, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
         pts["x"], pts["y"] = rng.uniform(0, 30, 2000), rng.uniform(0, 30, 2000)
-        node._on_points(messages.cloud(pts, messages.header(10**9, "map")))
+        node._handle(messages.cloud(pts, messages.header(10**9, "map")))
         assert node.stats["processed"] == 1
+    finally:
+        node.destroy_node()
+
+
+def test_clouds_the_busy_node_drops_are_counted(ros_node, monkeypatch):
+    # input.depth 1: while a cloud is processed, a newer one pushes the waiting one out; each
+    # such cloud is counted (it was lost without a trace inside the subscription's queue)
+    from lidar_obstacles.ros.obstacle_detector import ObstacleDetectorNode
+
+    node = ObstacleDetectorNode()
+    try:
+        def slow(msg, pose):
+            time.sleep(0.3)
+            return [], {"obstacles": 0}
+
+        monkeypatch.setattr(node.stage, "process", slow)
+        msg = PointCloud2(height=1, width=1, point_step=12, row_step=12, is_dense=True,
+                          data=bytes(12))
+        for _ in range(5):
+            node._on_points(msg)
+        deadline = time.monotonic() + 10
+        while node.stats["processed"] + node.stats["dropped_superseded"] < 5:
+            assert time.monotonic() < deadline, node.stats
+            time.sleep(0.05)
+        assert node.stats["received"] == 5 and node.stats["dropped_superseded"] >= 3
+        assert node.stats["processed"] in (1, 2)
     finally:
         node.destroy_node()

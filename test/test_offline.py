@@ -212,6 +212,32 @@ def test_las2bag_and_replay_every_shared_file(name, tmp_path):
     assert replayed["messages"] == summary["messages"] and replayed["rejected"] == 0
 
 
+def test_las2bag_slices_by_flight_line_without_gps_time():
+    from lidar_obstacles.ros.offline import _las_slices
+
+    # two overlapping lines, flown east-west then north-south, the second first in the file
+    rng = np.random.default_rng(0)
+    n = 4000
+    pts = np.zeros(2 * n, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"),
+                                 ("point_source_id", "<u2")])
+    pts["x"][:n], pts["y"][:n] = rng.uniform(0, 30, n), rng.uniform(0, 300, n)
+    pts["point_source_id"][:n] = 9
+    pts["x"][n:], pts["y"][n:] = rng.uniform(0, 300, n), rng.uniform(0, 30, n)
+    pts["point_source_id"][n:] = 4
+    groups, stamps, how = _las_slices(pts, has_gps=False, slice_seconds=0.1, tile_size=None,
+                                      strip_width=10.0)
+    assert how == "flight_lines" and (np.diff(stamps) > 0).all()
+    lines = [np.unique(pts["point_source_id"][g]) for g in groups]
+    assert all(len(u) == 1 for u in lines)  # never two lines in one message
+    order = [int(u[0]) for u in lines]
+    assert order == sorted(order, key=[9, 4].index)  # line 9 (first in the file) first
+    for g in groups:  # strips across each line's own length
+        line = pts[g]
+        along = line["y"] if line["point_source_id"][0] == 9 else line["x"]
+        assert np.ptp(along) <= 10.0
+    assert sum(len(g) for g in groups) == 2 * n
+
+
 def test_las2bag_tiles(tmp_path):
     src = data_file("isprs/samp11-utm.laz")
     summary = run_cli("las2bag", src, tmp_path / "bag", "--tile-size", "50")

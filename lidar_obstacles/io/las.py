@@ -19,6 +19,7 @@ LAS_FIELDS: tuple[tuple[str, str], ...] = (
     ("number_of_returns", "u1"),
     ("classification", "u1"),
     ("gps_time", "<f8"),
+    ("point_source_id", "<u2"),  # the flight line (las2bag slices by it without GPS time)
 )
 
 

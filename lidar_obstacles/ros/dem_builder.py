@@ -44,8 +44,10 @@ class DemBuilderNode(PipelineNode):
     def _publish_dem(self) -> None:
         if not self._dirty:
             return
-        self._dirty = False
-        for topic, out in self.stage.dem_outputs():
+        with self.stage_lock:
+            self._dirty = False
+            outputs = self.stage.dem_outputs()
+        for topic, out in outputs:
             self.pubs[topic].publish(out)
 
     def extra_diagnostics(self) -> dict[str, str]:
@@ -58,7 +60,8 @@ class DemBuilderNode(PipelineNode):
         from lidar_obstacles.config import parse_crs
         from lidar_obstacles.io.geotiff import write_geotiff
 
-        grid = self.stage.grid()
+        with self.stage_lock:
+            grid = self.stage.grid()
         path = self.cfg.export.path
         if grid.elevation.size == 0:
             response.success, response.message = False, "no DEM yet: no ground received"

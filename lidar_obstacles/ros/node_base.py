@@ -1,5 +1,7 @@
 """The frame the three nodes (obstacle_detector, dem_builder, cloud_simplifier) share:
 parameters from the schema, input QoS that follows the publishers, optional odometry,
+an inbox of `input.depth` clouds worked on by its own thread (a cloud pushed out of it by
+newer ones while the node was busy is counted, not lost without a trace),
 diagnostics, throttled warnings for rejected clouds, and the Jazzy-style main with clean
 shutdown."""
 from __future__ import annotations
@@ -7,6 +9,7 @@ from __future__ import annotations
 import bisect
 import collections
 import sys
+import threading
 import time
 import traceback
 from typing import Any, Callable
@@ -17,6 +20,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nav_msgs.msg import Odometry
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.qos import (
     DurabilityPolicy,
     HistoryPolicy,
@@ -32,6 +36,8 @@ from lidar_obstacles.ros.params import declare_config, on_parameter_change
 from lidar_obstacles.ros.stages import Pose, pose_of_odometry
 
 WARN_THROTTLE_S = 5.0
+# The stats that count clouds which gave no output, each for its own reason.
+DROPPED = ("rejected", "dropped_no_pose", "dropped_superseded", "lost", "failed")
 
 
 def output_qos(depth: int = 2, transient_local: bool = False) -> QoSProfile:
@@ -76,7 +82,14 @@ class PipelineNode(Node):
     """Base of `obstacle_detector`, `dem_builder` and `cloud_simplifier`.
 
     Subclasses give the config class, make their stage (`self.stage`) and its publishers
-    (`self.pubs`, by topic).
+    (`self.pubs`, by topic). The stage is used on the worker thread; anything else that
+    touches it (a timer, a service) holds `self.stage_lock`.
+
+    Clouds: the subscription's callback only puts each cloud in an inbox of `input.depth`
+    clouds (keep-last, as the subscription); the worker thread takes them from there, the
+    oldest first. A cloud pushed out of a full inbox before the worker took it is counted
+    (`dropped_superseded`): the node was busy, and the newest scans are what a flight
+    stack needs. Clouds the middleware reports lost are counted (`lost`).
     """
 
     config_cls: type
@@ -85,6 +98,7 @@ class PipelineNode(Node):
     def __init__(self, name: str) -> None:
         super().__init__(name)
         self.cfg = declare_config(self, self.config_cls)
+        self.stage_lock = threading.Lock()
         on_parameter_change(self, lambda: self.cfg, self._apply_config)
         self.poses = PoseBuffer()
         self.create_subscription(Odometry, "odom", lambda m: self.poses.add(pose_of_odometry(m)),
@@ -97,16 +111,25 @@ class PipelineNode(Node):
         self.create_timer(1.0, self._publish_diagnostics)
         self.create_timer(10.0, release_free_memory)  # flat memory over a long flight
         self.stats: dict[str, Any] = {"received": 0, "processed": 0, "rejected": 0,
-                                      "dropped_no_pose": 0, "failed": 0, "points_in": 0,
+                                      "dropped_no_pose": 0, "dropped_superseded": 0,
+                                      "lost": 0, "failed": 0, "points_in": 0,
                                       "points_out": 0}
         self.reject_reasons: collections.Counter[str] = collections.Counter()
         self.latencies: collections.deque[float] = collections.deque(maxlen=200)
         self.recv_times: collections.deque[float] = collections.deque(maxlen=50)
+        self._inbox: collections.deque[PointCloud2] = collections.deque(
+            maxlen=self.cfg.input.depth)  # (read-only: fixed for the node's life)
+        self._inbox_lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stopping = False
+        self._worker = threading.Thread(target=self._work, name=f"{name}-worker", daemon=True)
+        self._worker.start()
 
     # ---------------------------------------------------------------- configuration
     def _apply_config(self, cfg: Any) -> None:
-        self.cfg = cfg
-        self.reconfigure(cfg)
+        with self.stage_lock:  # (after the cloud in hand: the stage is not shared mid-cloud)
+            self.cfg = cfg
+            self.reconfigure(cfg)
 
     def reconfigure(self, cfg: Any) -> None:
         """New parameters go to the stage (`self.stage`), for the next cloud."""
@@ -133,15 +156,49 @@ class PipelineNode(Node):
             self.destroy_subscription(self._points_sub)
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.cfg.input.depth,
                          reliability=wanted)
-        self._points_sub = self.create_subscription(PointCloud2, "points", self._on_points, qos)
+        self._points_sub = self.create_subscription(
+            PointCloud2, "points", self._on_points, qos,
+            event_callbacks=SubscriptionEventCallbacks(message_lost=self._on_lost))
         self._points_reliability = wanted
         kind = "reliable" if wanted == ReliabilityPolicy.RELIABLE else "best effort"
         self.get_logger().info(f"subscribed to {self.resolve_topic_name('points')} ({kind})")
 
     # ---------------------------------------------------------------- processing
     def _on_points(self, msg: PointCloud2) -> None:
+        """The executor's callback: the cloud goes to the inbox, nothing more."""
         self.stats["received"] += 1
         self.recv_times.append(time.monotonic())
+        with self._inbox_lock:
+            if len(self._inbox) == self._inbox.maxlen:
+                self.stats["dropped_superseded"] += 1  # the oldest goes
+            self._inbox.append(msg)
+        self._wake.set()
+
+    def _on_lost(self, event: Any) -> None:
+        self.stats["lost"] += int(event.total_count_change)
+
+    def _work(self) -> None:
+        """The worker thread: the clouds in the inbox, oldest first, until stopped."""
+        while True:
+            self._wake.wait()
+            if self._stopping:
+                return
+            with self._inbox_lock:
+                msg = self._inbox.popleft() if self._inbox else None
+                if not self._inbox:
+                    self._wake.clear()
+            if msg is not None:
+                with self.stage_lock:
+                    self._handle(msg)
+
+    def destroy_node(self) -> None:
+        self._stopping = True
+        self._wake.set()
+        if self._worker.is_alive() and self._worker is not threading.current_thread():
+            self._worker.join(timeout=10.0)  # the cloud in hand, at most
+        super().destroy_node()
+
+    def _handle(self, msg: PointCloud2) -> None:
         stamp_ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
         pose = self.poses.nearest(stamp_ns, self.cfg.odometry_max_age)
         if self.cfg.use_odometry and pose is None:
@@ -193,7 +250,7 @@ class PipelineNode(Node):
         values.update({k: str(v) for k, v in self.stats.items()})
         values.update(self.extra_diagnostics())
         values.update({f"rejected: {k}": str(v) for k, v in self.reject_reasons.items()})
-        bad = self.stats["rejected"] + self.stats["dropped_no_pose"] + self.stats["failed"]
+        bad = sum(self.stats[k] for k in DROPPED)
         status = DiagnosticStatus(
             level=(DiagnosticStatus.ERROR if self.stats["failed"] else
                    DiagnosticStatus.WARN if bad else DiagnosticStatus.OK),

@@ -94,8 +94,13 @@ def simulate(out: Path, *, scene: str, seed: int, duration: float, frame: str,
 
 
 def _las_slices(points: np.ndarray, *, has_gps: bool, slice_seconds: float,
-                tile_size: float | None, strip_width: float) -> tuple[list[np.ndarray], np.ndarray]:
-    """Split a survey into messages. Returns (index arrays, stamps in ns)."""
+                tile_size: float | None, strip_width: float
+                ) -> tuple[list[np.ndarray], np.ndarray, str]:
+    """Split a survey into messages, the way a scanner would have sent them: by GPS time
+    when the file has it; else, when it holds several flight lines (`point_source_id`),
+    line after line, each in strips across its own length; else in strips across the
+    survey's length, or in tiles when `tile_size` is given. Returns (index arrays, stamps
+    in ns, what it was sliced by: "gps_time", "flight_lines", "strips" or "tiles")."""
     gps = points["gps_time"] if has_gps else None
     if tile_size is None and gps is not None and np.ptp(gps) > 0:
         order = np.argsort(gps, kind="stable")
@@ -105,21 +110,33 @@ def _las_slices(points: np.ndarray, *, has_gps: bool, slice_seconds: float,
         starts = np.array([gps[g[0]] for g in groups])
         # Adjusted standard GPS time (large, may be negative) -> Unix; week seconds stay relative.
         base = starts + 1e9 + GPS_TO_UNIX if np.abs(starts).max() > 7 * 86400 else starts
-        return groups, np.round(np.maximum(base, 0) * 1e9).astype(np.int64)
+        return groups, np.round(np.maximum(base, 0) * 1e9).astype(np.int64), "gps_time"
     x, y = points["x"], points["y"]
+    names = points.dtype.names or ()
+    lines = points["point_source_id"] if "point_source_id" in names else np.zeros(len(x), int)
     if tile_size is not None:
         ix = np.floor((x - x.min()) / tile_size).astype(np.int64)
         iy = np.floor((y - y.min()) / tile_size).astype(np.int64)
         ix = np.where(iy % 2 == 1, ix.max() - ix, ix)  # boustrophedon, as a survey is flown
-        key = iy * (ix.max() + 1) + ix
+        key, how = iy * (ix.max() + 1) + ix, "tiles"
     else:
-        along, across = (x, y) if np.ptp(x) >= np.ptp(y) else (y, x)
-        key = np.floor((along - along.min()) / strip_width).astype(np.int64)
+        # per flight line, strips across its own longer side; lines in the file's order
+        line_ids, first, line_of = np.unique(lines, return_index=True, return_inverse=True)
+        rank = np.empty(len(line_ids), np.int64)
+        rank[np.argsort(first, kind="stable")] = np.arange(len(line_ids))
+        strip = np.empty(len(x), np.int64)
+        for i in range(len(line_ids)):  # (a few lines: not a loop over points)
+            member = line_of == i
+            lx, ly = x[member], y[member]
+            along = lx if np.ptp(lx) >= np.ptp(ly) else ly
+            strip[member] = np.floor((along - along.min()) / strip_width).astype(np.int64)
+        key = rank[line_of] * (int(strip.max()) + 1) + strip
+        how = "flight_lines" if len(line_ids) > 1 else "strips"
     order = np.argsort(key, kind="stable")
     cuts = np.flatnonzero(np.diff(key[order])) + 1
     groups = np.split(order, cuts)
     stamps = (np.arange(len(groups)) * slice_seconds * 1e9).astype(np.int64)
-    return groups, stamps
+    return groups, stamps, how
 
 
 def las2bag(src: Path, out: Path, *, slice_seconds: float = 0.1, tile_size: float | None = None,
@@ -147,8 +164,9 @@ def las2bag(src: Path, out: Path, *, slice_seconds: float = 0.1, tile_size: floa
     for name, _ in fields[:-1]:
         rec[name] = pts[name] if name in pts.dtype.names else 0
     rec["point_id"] = np.arange(len(pts), dtype=np.uint32)
-    groups, stamps = _las_slices(pts, has_gps=las.has_gps_time, slice_seconds=slice_seconds,
-                                 tile_size=tile_size, strip_width=strip_width)
+    groups, stamps, sliced_by = _las_slices(pts, has_gps=las.has_gps_time,
+                                            slice_seconds=slice_seconds, tile_size=tile_size,
+                                            strip_width=strip_width)
     crs = f"EPSG:{las.epsg}" if las.epsg else las.crs_wkt
     from std_msgs.msg import String
 
@@ -161,8 +179,7 @@ def las2bag(src: Path, out: Path, *, slice_seconds: float = 0.1, tile_size: floa
             hdr = messages.header(int(stamp), frame_id)
             bag.write(topic, int(stamp), _serialize(messages.cloud(rec[idx], hdr)))
     return {"bag": str(out), "messages": len(groups), "points": int(len(pts)),
-            "crs": crs, "sliced_by": "gps_time" if las.has_gps_time and tile_size is None
-            and np.ptp(pts["gps_time"]) > 0 else ("tiles" if tile_size else "strips")}
+            "crs": crs, "sliced_by": sliced_by}
 
 
 # --------------------------------------------------------------------------- replay
