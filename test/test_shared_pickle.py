@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lidar_obstacles.io.shared_pickle import discard_shared, from_shared, to_shared
+from lidar_obstacles.io.shared_pickle import (BlockPool, attach, discard_shared, from_shared,
+                                              to_shared)
 
 SHM = Path("/dev/shm")
 
@@ -91,3 +92,35 @@ def test_without_shared_memory_it_goes_through_the_pipe(cloud, monkeypatch):
     back = from_shared(shared)
     np.testing.assert_array_equal(back["points"], cloud["points"])
     assert bytes(back["cdr"]) == b"\x00\x01" * 4000
+
+
+def _result_into_job_block(shared, out):
+    job = from_shared(shared)
+    result = to_shared({"sum": job["xyz"].sum(axis=1)}, into=attach(shared.block))
+    out.put(result)
+
+
+def test_pool_blocks_are_reused_and_carry_the_result_back(cloud):
+    before = blocks()
+    pool = BlockPool()
+    shared = to_shared(cloud, pool=pool)
+    assert shared.kept and len(blocks() - before) == 1
+    ctx = multiprocessing.get_context("fork")
+    out = ctx.Queue()
+    child = ctx.Process(target=_result_into_job_block, args=(shared, out))
+    child.start()
+    result = out.get(timeout=30)
+    child.join(timeout=30)
+    assert result.kept and result.block == shared.block  # the job's block, read already
+    back = from_shared(result, pool=pool)
+    np.testing.assert_array_equal(back["sum"], cloud["xyz"].sum(axis=1))
+    discard_shared(result)  # a pool's block: left to the pool
+    pool.give(shared.block)
+    again = to_shared(cloud, pool=pool)
+    assert again.block == shared.block and len(blocks() - before) == 1  # reused
+    np.testing.assert_array_equal(from_shared(again, pool=pool)["xyz"], cloud["xyz"])
+    pool.give(again.block)
+    bigger = to_shared({"xyz": np.zeros((400_000, 3))}, pool=pool)  # does not fit: a new one
+    assert bigger.block != shared.block and len(blocks() - before) == 2
+    pool.close()
+    assert blocks() == before

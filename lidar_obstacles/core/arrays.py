@@ -88,10 +88,18 @@ def single_threaded_blas() -> None:
     covariances); OpenBLAS's worker threads spin on the 2 cores the nodes share with the
     flight stack and with each other: a (3000, 3) @ (3, 100) product took 8 ms with 2
     threads on a busy machine and 0.15 ms with one, and the detector's CPU time per
-    50 000-point message fell from 54 to 33 ms."""
-    from threadpoolctl import threadpool_limits
+    50 000-point message fell from 54 to 33 ms.
 
-    threadpool_limits(1, user_api="blas")
+    Only the libraries not on one thread already are set: setting OpenBLAS's thread
+    count, even to the 1 it has, in a forked child starts its worker threads again, and
+    they spin ~0.1 s each before they sleep (0.2 s of CPU per `replay` worker, whose
+    parent had set it before the fork)."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    busy = {lib["prefix"]: 1 for lib in threadpool_info()
+            if lib["user_api"] == "blas" and lib["num_threads"] > 1}
+    if busy:
+        threadpool_limits(busy)
 
 
 @functools.cache

@@ -22,6 +22,7 @@ answer (a constant or a line's extension), see :func:`degeneracy` for the reason
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Callable, ContextManager
@@ -54,9 +55,14 @@ def one_blas_thread() -> ContextManager:
     SciPy's Delaunay computes its barycentric transforms with one tiny LAPACK call per
     triangle; with OpenBLAS's 2 threads on a machine whose cores are busy each call waits
     for the other thread, and 8 000 triangles took 0.2-0.6 s instead of 0.016 s. The
-    cached controller makes entering the context cost ~5 us.
+    cached controller makes entering the context cost ~5 us. Nothing is set when every
+    BLAS is on one thread already (the nodes, `replay`'s workers): setting it, even to 1,
+    in a forked child starts OpenBLAS's threads, which spin ~0.1 s each.
     """
-    return _threadpools().limit(limits=1, user_api="blas")
+    blas = _threadpools().select(user_api="blas")
+    if all(lib.num_threads == 1 for lib in blas.lib_controllers):
+        return contextlib.nullcontext()
+    return blas.limit(limits=1)
 
 
 def _check(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray) -> tuple[np.ndarray, ...]:

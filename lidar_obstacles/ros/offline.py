@@ -19,12 +19,12 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 
 from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
-from lidar_obstacles.core.arrays import release_free_memory
+from lidar_obstacles.core.arrays import release_free_memory, reuse_freed_memory
 from lidar_obstacles.errors import BagError, CloudFormatError, LasError, reason_key
 from lidar_obstacles.core.pipeline import GroundStep, ObstacleResult
 from lidar_obstacles.io.bags import CRS_TOPIC, ODOMETRY, POINTCLOUD2, BagReader, BagWriter, read_crs
-from lidar_obstacles.io.shared_pickle import (SharedPickle, discard_shared, from_shared,
-                                              to_shared)
+from lidar_obstacles.io.shared_pickle import (BlockPool, SharedPickle, attach, discard_shared,
+                                              from_shared, to_shared)
 from lidar_obstacles.ros import messages
 from lidar_obstacles.ros.stages import (DemStage, DetectorStage, DetectorWork, Pose,
                                         pose_of_odometry)
@@ -446,32 +446,39 @@ def _start_worker(det_cfg: ObstacleDetectorConfig | None, dem_cfg: DemBuilderCon
 def _work_in_worker(shared_job: SharedPickle) -> SharedPickle:
     """A worker's job, and its result, through shared memory: a cloud's GroundStep is
     classified into (ObstacleResult, seconds); DemWork is done into a `Done`, its CDR
-    bytes out of band like the job's arrays."""
+    bytes out of band like the job's arrays. The result goes into the job's block when
+    it fits (the job was read out of it): the caller's pool takes the block back."""
     global _WORKER_DONE
     _WORKER_DONE += 1
     if _WORKER_DONE % 100 == 0:
         release_free_memory()  # as the nodes do every 10 s
     job = from_shared(shared_job)
+    into = attach(shared_job.block) if shared_job.kept and shared_job.block else None
     if isinstance(job, GroundStep):
         assert _WORKER_DETECTOR is not None, "no detector in this worker"
-        return to_shared(_WORKER_DETECTOR.classify(job))
+        return to_shared(_WORKER_DETECTOR.classify(job), into=into)
     assert _WORKER_SCHEDULE is not None, "no DEM in this worker"
     items, seconds = _WORKER_SCHEDULE(job)
-    return to_shared(([(t, ns, pickle.PickleBuffer(raw)) for t, ns, raw in items], seconds))
+    return to_shared(([(t, ns, pickle.PickleBuffer(raw)) for t, ns, raw in items], seconds),
+                     into=into)
 
 
 class _Later:
     """A worker's Future of one job's result, which comes through shared memory. Until
-    the result is taken, `discard` frees whichever block is still waiting: the job's, if
-    the worker never started it, or the result's."""
+    the result is taken, `discard` frees whichever block of its own is still waiting: the
+    job's, if the worker never started it, or the result's (`pool`'s blocks are left to
+    the pool). Once the result is read, the job's block goes back to `pool`."""
 
-    def __init__(self, future, job: SharedPickle) -> None:
-        self._future, self._job = future, job
+    def __init__(self, future, job: SharedPickle, pool: BlockPool) -> None:
+        self._future, self._job, self._pool = future, job, pool
         self.taken = False
 
     def _take(self, timeout: float | None) -> Any:
         self.taken = True
-        return from_shared(self._future.result(timeout))
+        result = from_shared(self._future.result(timeout), pool=self._pool)
+        if self._job.kept and self._job.block is not None:
+            self._pool.give(self._job.block)
+        return result
 
     def discard(self) -> None:
         if self.taken:
@@ -488,9 +495,9 @@ class _ObstaclesLater(_Later):
     the points it kept: they need not cross to the worker and back, and the worker, the
     busiest process, is spared ~8 ms of messages per cloud."""
 
-    def __init__(self, future, job: SharedPickle, stage: DetectorStage,
+    def __init__(self, future, job: SharedPickle, pool: BlockPool, stage: DetectorStage,
                  work: ObstacleWork) -> None:
-        super().__init__(future, job)
+        super().__init__(future, job, pool)
         self._stage, self._work = stage, work
 
     def result(self, timeout: float | None = None) -> Done:
@@ -522,7 +529,13 @@ class _WorkerProcesses:
         from concurrent.futures import ProcessPoolExecutor
         from multiprocessing import resource_tracker
 
+        from lidar_obstacles.core.arrays import single_threaded_blas
+
         ctx = multiprocessing.get_context("fork")
+        # BLAS on one thread here, before the forks (the libraries the stages loaded since
+        # the caller's own call): the workers then find it so and need not set it, which
+        # in a forked child starts OpenBLAS's threads (~0.2 s of CPU per worker)
+        single_threaded_blas()
         # one tracker of the shared memory blocks for all three processes: each block is
         # made in one process and unlinked in another
         resource_tracker.ensure_running()
@@ -533,6 +546,7 @@ class _WorkerProcesses:
         for pool in self._pools.values():
             pool.submit(int)  # the forks happen now, before any other thread exists
         self._pending: collections.deque[_Later] = collections.deque()
+        self._blocks = BlockPool()  # the jobs' blocks, which carry their results back
 
     def submit(self, job: ObstacleWork | DemWork, detector: DetectorStage | None = None
                ) -> _ObstaclesLater | _DemLater:
@@ -541,12 +555,13 @@ class _WorkerProcesses:
         if isinstance(job, ObstacleWork):
             if detector is None:
                 raise ValueError("obstacle work needs this process's DetectorStage")
-            shared = to_shared(job.work.ground)
+            shared = to_shared(job.work.ground, pool=self._blocks)
             later = _ObstaclesLater(self._pools["obstacles"].submit(_work_in_worker, shared),
-                                    shared, detector, job)
+                                    shared, self._blocks, detector, job)
         else:
-            shared = to_shared(job)
-            later = _DemLater(self._pools["dem"].submit(_work_in_worker, shared), shared)
+            shared = to_shared(job, pool=self._blocks)
+            later = _DemLater(self._pools["dem"].submit(_work_in_worker, shared), shared,
+                              self._blocks)
         while self._pending and self._pending[0].taken:
             self._pending.popleft()
         self._pending.append(later)
@@ -559,6 +574,7 @@ class _WorkerProcesses:
         for later in self._pending:
             later.discard()
         self._pending.clear()
+        self._blocks.close()
 
 
 class _BackgroundWriter:
@@ -604,6 +620,10 @@ class _BackgroundWriter:
 def replay(src: Path, out: Path, *, topic: str | None = None, params_file: Path | None = None,
            storage: str = "mcap", with_dem: bool = True) -> dict:
     """Run both nodes' stages over a bag and write what they would publish."""
+    # As the CLI does, and here too for callers from Python (benchmarks, scripts): without
+    # it the main process faulted every cloud's arrays in again, 38 -> 28 ms of CPU per
+    # 50 000-point message (half of it system time). The forked workers inherit it.
+    reuse_freed_memory()
     det_cfg, dem_cfg = load_configs(params_file)
     stats = ReplayStats()
     detector = DetectorStage(det_cfg)
