@@ -212,6 +212,8 @@ class PipelineNode(Node):
             return
         except Exception as exc:  # noqa: BLE001 - beside a flight stack a bug must not
             # take the node down: the cloud is dropped, counted and logged with its trace
+            if self._stopping or not self.context.ok():
+                return  # SIGINT/SIGTERM shut the context down under the cloud in hand
             self.stats["failed"] += 1
             self.reject_reasons[f"internal error: {type(exc).__name__}"] += 1
             self.get_logger().error(f"failed on a cloud (a bug, please report it):\n"
