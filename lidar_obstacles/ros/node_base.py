@@ -19,8 +19,8 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nav_msgs.msg import Odometry
 from rclpy.executors import ExternalShutdownException
-from rclpy.node import Node
 from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
     HistoryPolicy,
@@ -49,14 +49,20 @@ def output_qos(depth: int = 2, transient_local: bool = False) -> QoSProfile:
 
 
 class PoseBuffer:
-    """Odometry poses of the last few seconds, looked up by nearest stamp."""
+    """Odometry poses of the last few seconds, looked up by nearest stamp. Thread-safe:
+    the executor adds poses while the worker thread looks them up."""
 
     def __init__(self, horizon_s: float = 10.0) -> None:
         self.horizon_ns = int(horizon_s * 1e9)
         self._stamps: collections.deque[int] = collections.deque()
         self._poses: collections.deque[Pose] = collections.deque()
+        self._lock = threading.Lock()
 
     def add(self, pose: Pose) -> None:
+        with self._lock:
+            self._add(pose)
+
+    def _add(self, pose: Pose) -> None:
         if self._stamps and pose.stamp_ns < self._stamps[-1]:
             self._stamps.clear()  # time jumped back (bag loop): start over
             self._poses.clear()
@@ -67,6 +73,10 @@ class PoseBuffer:
             self._poses.popleft()
 
     def nearest(self, stamp_ns: int, max_age_s: float) -> Pose | None:
+        with self._lock:
+            return self._nearest(stamp_ns, max_age_s)
+
+    def _nearest(self, stamp_ns: int, max_age_s: float) -> Pose | None:
         if not self._stamps:
             return None
         stamps = list(self._stamps)
