@@ -114,7 +114,8 @@ def test_replay_is_deterministic(sim_bag, tmp_path):
 
 def _contents(items) -> list[tuple[str, int, bytes]]:
     """(topic, stamp, CDR) with the padding bytes zeroed: rclpy leaves them as they were in
-    memory, so equal messages may differ there."""
+    memory, so equal messages may differ there. The diagnostics' latencies, measured
+    times, are blanked."""
     from rosbags.typesys import Stores, get_typestore
 
     from lidar_obstacles.ros.offline import OUTPUT_TYPES, _serialize
@@ -126,9 +127,61 @@ def _contents(items) -> list[tuple[str, int, bytes]]:
         if kind is None:
             continue
         raw = msg if isinstance(msg, bytes) else _serialize(msg)
-        again = store.serialize_cdr(store.deserialize_cdr(raw, kind), kind)
-        out.append((topic, stamp, bytes(again)))
+        decoded = store.deserialize_cdr(raw, kind)
+        if topic == "/diagnostics":
+            for status in decoded.status:
+                for kv in status.values:
+                    kv.value = "-" if kv.key.startswith("latency") else kv.value
+        out.append((topic, stamp, bytes(store.serialize_cdr(decoded, kind))))
     return out
+
+
+def _diagnostics(bag: Path) -> dict[str, list[tuple[int, int, dict[str, str]]]]:
+    """Per status name, its (stamp ns, level, values) in a bag's /diagnostics."""
+    out: dict[str, list] = {}
+    with BagReader(bag) as reader:
+        for rec in reader.records(["/diagnostics"]):
+            msg = reader.deserialize(rec)
+            for st in msg.status:
+                out.setdefault(st.name, []).append(
+                    (offline.messages.stamp_ns_of(msg.header), st.level,
+                     {kv.key: kv.value for kv in st.values}))
+    return out
+
+
+def test_replay_writes_each_nodes_diagnostics_on_the_bags_clock(sim_bag, tmp_path):
+    """/diagnostics as both nodes would publish it, every second of the bag's time and at
+    its end: a malformed cloud is counted with its reason (WARN), the points out are the
+    clouds' obstacle points and the DEM's ground, the DEM's check points are measured."""
+    from lidar_obstacles.io.bags import POINTCLOUD2, BagWriter, typestore
+
+    bad = tmp_path / "one_bad"
+    with BagReader(sim_bag) as reader, BagWriter(bad) as out:
+        out.add_topic("/points", POINTCLOUD2)
+        for i, rec in enumerate(reader.records(["/points"])):
+            msg = reader.deserialize(rec)
+            if i == 4:
+                msg.data = msg.data[: len(msg.data) // 2]  # a cloud cut short
+            out.write("/points", rec.stamp_ns, bytes(typestore().serialize_cdr(msg, POINTCLOUD2)))
+    summary = run_cli("replay", bad, tmp_path / "out")
+    assert summary["messages"] == 19 and summary["rejected"] == 1
+    diag = _diagnostics(tmp_path / "out")
+    assert set(diag) == {"obstacle_detector: processing", "dem_builder: processing"}
+    obstacle_points = sum(len(c) for c in clouds(tmp_path / "out", "/obstacles"))
+    for name, seen in diag.items():
+        assert [stamp for stamp, _, _ in seen] == [1_000_000_000, 1_900_000_000]  # 1 s, end
+        stamp, level, last = seen[-1]
+        assert level == 1  # WARN: a cloud dropped
+        assert (last["received"], last["processed"], last["rejected"]) == ("20", "19", "1")
+        assert [k for k in last if k.startswith("rejected: ")] == [
+            "rejected: " + next(iter(summary["reject_reasons"]))]
+        assert float(last["rate_hz"]) == pytest.approx(10.0, rel=0.1)  # (DEM: clouds it got)
+        assert float(last["latency_p95_ms"]) > 0
+    detector = diag["obstacle_detector: processing"][-1][2]
+    assert int(detector["points_out"]) == obstacle_points > 0
+    dem = diag["dem_builder: processing"][-1][2]
+    assert 0 < int(dem["points_out"]) <= int(dem["points_in"]) < summary["points"]
+    assert int(dem["check_n"]) > 0 and float(dem["check_rmse_m"]) < 0.2
 
 
 def test_replay_in_three_processes_writes_exactly_what_a_sequential_run_makes(sim_bag, tmp_path):
@@ -144,10 +197,10 @@ def test_replay_in_three_processes_writes_exactly_what_a_sequential_run_makes(si
         written = [(r.topic, r.stamp_ns, r.raw) for r in reader.records()]
     with BagReader(sim_bag) as reader:
         detector, dem = DetectorStage(ObstacleDetectorConfig()), DemStage(DemBuilderConfig())
-        schedule = DemSchedule(dem)
+        schedule, stats = DemSchedule(dem), ReplayStats()
         sequential = [done for item in run_stages(
-            reader, topic=None, detector=detector, dem=dem, stats=ReplayStats())
-            for done in drain(item, detector=detector, schedule=schedule)]
+            reader, topic=None, detector=detector, dem=dem, stats=stats)
+            for done in drain(item, detector=detector, schedule=schedule, stats=stats)]
     assert any(t == "/dem" for t, _, _ in sequential)
     assert _contents(written) == _contents(sequential)
 
@@ -161,7 +214,7 @@ def test_a_worker_process_hands_its_errors_back():
     workers = _WorkerProcesses(ObstacleDetectorConfig(), DemBuilderConfig())
     try:
         ok = workers.submit(DemWork(0, 0, "map", None, np.zeros((3, 3)), np.zeros(3)))
-        assert ok.result(timeout=120) == ([], None)  # the first cloud: no DEM due yet
+        assert ok.result(timeout=120).items == []  # the first cloud: no DEM due yet
         bad = workers.submit(DemWork(1, 1, "map", None, np.zeros((5, 2)), np.zeros(5)))
         with pytest.raises(ValueError, match="reshape"):
             bad.result(timeout=120)

@@ -51,10 +51,8 @@ class DemBuilderNode(PipelineNode):
             self.pubs[topic].publish(out)
 
     def extra_diagnostics(self) -> dict[str, str]:
-        """The DEM at its held-out check points (`thinning.check_points`), as of the last
-        publish: check_rmse_m, check_r2 ("-" until known) and check_n."""
-        return {k: ("-" if v is None else f"{v:.4g}" if isinstance(v, float) else str(v))
-                for k, v in self.stage.check_stats.items()}
+        """The DEM at its held-out check points, as of the last publish."""
+        return self.stage.check_values()
 
     def _save_dem(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         from lidar_obstacles.config import parse_crs

@@ -2,11 +2,12 @@
 from __future__ import annotations
 
 import array
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
 from builtin_interfaces.msg import Duration, Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
 from nav_msgs.msg import MapMetaData, OccupancyGrid, Odometry
 from sensor_msgs.msg import Image, PointCloud2, PointField
@@ -126,3 +127,41 @@ def odometry(stamp_ns: int, frame_id: str, child_frame_id: str, position, orient
         msg.twist.twist.linear = Vector3(x=float(velocity[0]), y=float(velocity[1]),
                                          z=float(velocity[2]))
     return msg
+
+
+# The counts of clouds that gave no output, each for its own reason: any of them makes a
+# node's diagnostics WARN ("failed", a bug, makes them ERROR).
+DROPPED = ("rejected", "dropped_no_pose", "dropped_superseded", "lost", "failed")
+
+
+def rate_hz(stamps_s: Sequence[float]) -> float:
+    """Messages per second over (M,) arrival times in seconds, oldest first (0 for < 2)."""
+    if len(stamps_s) < 2:
+        return 0.0
+    span = stamps_s[-1] - stamps_s[0]
+    return (len(stamps_s) - 1) / span if span > 0 else 0.0
+
+
+def diagnostics(hdr: Header, name: str, hardware_id: str, counts: Mapping[str, int],
+                reject_reasons: Mapping[str, int], latencies_s: Sequence[float],
+                rate: float, extra: Mapping[str, str] | None = None) -> DiagnosticArray:
+    """One node's `/diagnostics` message: its status named "<name>: processing", with the
+    rate (Hz), the latency percentiles of (M,) per-cloud seconds, every count and every
+    reason a cloud was rejected. Level ERROR after a failure (a bug), WARN when clouds
+    were dropped for any reason (`DROPPED`), else OK. The nodes publish it every second;
+    `replay` writes it every second of the bag's time."""
+    lat = np.asarray(latencies_s, float) if len(latencies_s) else np.zeros(1)
+    values = {"rate_hz": f"{rate:.2f}",
+              "latency_p50_ms": f"{1e3 * np.percentile(lat, 50):.1f}",
+              "latency_p95_ms": f"{1e3 * np.percentile(lat, 95):.1f}"}
+    values.update({k: str(v) for k, v in counts.items()})
+    values.update(extra or {})
+    values.update({f"rejected: {k}": str(v) for k, v in reject_reasons.items()})
+    bad = sum(int(counts.get(k, 0)) for k in DROPPED)
+    status = DiagnosticStatus(
+        level=(DiagnosticStatus.ERROR if counts.get("failed") else
+               DiagnosticStatus.WARN if bad else DiagnosticStatus.OK),
+        name=f"{name}: processing", hardware_id=hardware_id,
+        message=f"{bad} clouds dropped" if bad else "ok",
+        values=[KeyValue(key=k, value=v) for k, v in values.items()])
+    return DiagnosticArray(header=hdr, status=[status])

@@ -14,9 +14,8 @@ import time
 import traceback
 from typing import Any, Callable
 
-import numpy as np
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.executors import ExternalShutdownException
 from rclpy.event_handler import SubscriptionEventCallbacks
@@ -32,12 +31,11 @@ from sensor_msgs.msg import PointCloud2
 from lidar_obstacles.core.arrays import (release_free_memory, reuse_freed_memory,
                                          single_threaded_blas)
 from lidar_obstacles.errors import ConfigError, LidarObstaclesError, reason_key
+from lidar_obstacles.ros import messages
 from lidar_obstacles.ros.params import declare_config, on_parameter_change
 from lidar_obstacles.ros.stages import Pose, pose_of_odometry
 
 WARN_THROTTLE_S = 5.0
-# The stats that count clouds which gave no output, each for its own reason.
-DROPPED = ("rejected", "dropped_no_pose", "dropped_superseded", "lost", "failed")
 
 
 def output_qos(depth: int = 2, transient_local: bool = False) -> QoSProfile:
@@ -252,24 +250,10 @@ class PipelineNode(Node):
 
     # ---------------------------------------------------------------- diagnostics
     def _publish_diagnostics(self) -> None:
-        lat = np.array(self.latencies) if self.latencies else np.zeros(1)
-        rate = 0.0
-        if len(self.recv_times) > 1:
-            span = self.recv_times[-1] - self.recv_times[0]
-            rate = (len(self.recv_times) - 1) / span if span > 0 else 0.0
-        values = {"rate_hz": f"{rate:.2f}", "latency_p50_ms": f"{1e3 * np.percentile(lat, 50):.1f}",
-                  "latency_p95_ms": f"{1e3 * np.percentile(lat, 95):.1f}"}
-        values.update({k: str(v) for k, v in self.stats.items()})
-        values.update(self.extra_diagnostics())
-        values.update({f"rejected: {k}": str(v) for k, v in self.reject_reasons.items()})
-        bad = sum(self.stats[k] for k in DROPPED)
-        status = DiagnosticStatus(
-            level=(DiagnosticStatus.ERROR if self.stats["failed"] else
-                   DiagnosticStatus.WARN if bad else DiagnosticStatus.OK),
-            name=f"{self.get_name()}: processing", hardware_id=self.get_fully_qualified_name(),
-            message=f"{bad} clouds dropped" if bad else "ok",
-            values=[KeyValue(key=k, value=v) for k, v in values.items()])
-        self.diag_pub.publish(DiagnosticArray(header=self._diag_header(), status=[status]))
+        self.diag_pub.publish(messages.diagnostics(
+            self._diag_header(), self.get_name(), self.get_fully_qualified_name(),
+            self.stats, self.reject_reasons, self.latencies, messages.rate_hz(self.recv_times),
+            self.extra_diagnostics()))
 
     def extra_diagnostics(self) -> dict[str, str]:
         """Node-specific values for the diagnostics (the DEM's accuracy at its check

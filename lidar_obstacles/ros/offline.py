@@ -14,7 +14,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any, Iterable, Iterator, NamedTuple
 
 import numpy as np
 
@@ -38,10 +38,17 @@ OUTPUT_TYPES = {
     "/clearance": "nav_msgs/msg/OccupancyGrid", "/dem": POINTCLOUD2,
     "/dem_image": "sensor_msgs/msg/Image", "/dem_info": "nav_msgs/msg/MapMetaData",
     "/obstacle_edges": POINTCLOUD2,  # only with `features.enabled`
+    "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
 }
 TRANSIENT_LOCAL = {"/dem", "/dem_image", "/dem_info"}
 DEFERRED = ""  # topic of a `run_stages` item that is work to do, not a message (see drain)
 GPS_TO_UNIX = 315_964_800 - 18  # GPS epoch in Unix time, minus the leap seconds since then
+# `/diagnostics` as the nodes publish it: every second (of the bag's time, here), latency
+# percentiles of the last LATENCY_WINDOW clouds, the rate over the last RATE_WINDOW.
+DIAGNOSTICS_PERIOD_NS = 1_000_000_000
+LATENCY_WINDOW = 200
+RATE_WINDOW = 50
+NO_POSE = "no odometry pose near the cloud's stamp"
 
 
 def _serialize(msg: Any) -> bytes:
@@ -190,6 +197,7 @@ class ReplayStats:
     messages: int = 0
     rejected: int = 0
     points: int = 0
+    points_out: int = 0  # the detector's obstacle points
     bag_seconds: float = 0.0
     wall_seconds: float = 0.0
     latencies: list[float] = field(default_factory=list)
@@ -205,6 +213,13 @@ class ReplayStats:
                 "latency_p50_ms": round(1e3 * float(np.percentile(lat, 50)), 2),
                 "latency_p95_ms": round(1e3 * float(np.percentile(lat, 95)), 2),
                 "reject_reasons": self.reject_reasons}
+
+    def counts(self) -> dict[str, int]:
+        """The counts `obstacle_detector` would give in its diagnostics for these clouds."""
+        no_pose = self.reject_reasons.get(NO_POSE, 0)
+        return {"received": self.messages + self.rejected, "processed": self.messages,
+                "rejected": self.rejected - no_pose, "dropped_no_pose": no_pose,
+                "points_in": self.points, "points_out": self.points_out}
 
 
 def load_configs(params_file: Path | None, dem_base: DemBuilderConfig | None = None
@@ -245,12 +260,30 @@ class DemWork:
     vehicle_xyz: np.ndarray | None = None
     ground_xyz: np.ndarray | None = None
     ground_hag: np.ndarray | None = None
+    reject_reasons: dict[str, int] = field(default_factory=dict)  # the clouds' so far
 
 
-# Deferred work is done into (items to write, seconds of detector work or None); the items
-# are (topic, record stamp ns, CDR bytes): serialized where they were made, because they
-# may cross processes and rclpy messages do not pickle.
-Done = tuple[list[tuple[str, int, bytes]], "float | None"]
+@dataclass(frozen=True)
+class DetectorDiagnostics:
+    """The detector's `/diagnostics`, due at a cloud (stamp_ns: its time): the rate and
+    the counts of the clouds so far. `drain` makes the message, once every earlier
+    cloud's work is done: their latencies and obstacle points are then known."""
+
+    stamp_ns: int
+    rate_hz: float
+    reject_reasons: dict[str, int]
+    counts: dict[str, int]
+
+
+class Done(NamedTuple):
+    """Deferred work, done: the items to write, (topic, record stamp ns, CDR bytes),
+    serialized where they were made because they may cross processes (rclpy messages do
+    not pickle); for a cloud's obstacles, the detector's seconds on it and its obstacle
+    points."""
+
+    items: list[tuple[str, int, bytes]]
+    seconds: float | None = None
+    points_out: int = 0
 
 
 def finish_obstacles(stage: DetectorStage, job: ObstacleWork) -> Done:
@@ -262,46 +295,90 @@ def publish_obstacles(stage: DetectorStage, job: ObstacleWork, result: ObstacleR
                       seconds: float) -> Done:
     """The messages of one classified cloud (`DetectorStage.publish`), serialized."""
     outputs, det_stats = stage.publish(job.work, result, seconds)
-    return ([("/" + name, job.record_ns, _serialize(out)) for name, out in outputs],
-            det_stats["seconds"])
+    return Done([("/" + name, job.record_ns, _serialize(out)) for name, out in outputs],
+                det_stats["seconds"], det_stats["obstacles"])
 
 
 class DemSchedule:
-    """The DEM side of `replay`: every cloud goes into the rolling DEM, and its messages
-    are due at `dem.publish_rate` on the bag's clock, as the node's timer would publish
-    them. Items are (topic, record stamp ns, message)."""
+    """The DEM side of `replay`: every cloud goes into the rolling DEM; its messages are
+    due at `dem.publish_rate` and `dem_builder`'s `/diagnostics` every second, on the
+    bag's clock, as the node's timers would publish them. Items are (topic, record stamp
+    ns, message)."""
 
     def __init__(self, stage: DemStage) -> None:
         self.stage = stage
         self.period_ns = int(1e9 / stage.cfg.dem.publish_rate)
         self.next_ns: int | None = None
+        self.diagnostics_ns: int | None = None
+        self.counts = {"processed": 0, "points_in": 0, "points_out": 0}
+        self.latencies: collections.deque[float] = collections.deque(maxlen=LATENCY_WINDOW)
+        self.stamps: collections.deque[float] = collections.deque(maxlen=RATE_WINDOW)
+        # the clouds rejected so far (replay's, which the DEM never sees)
+        self.reject_reasons: dict[str, int] = {}
 
-    def _due(self, stamp_ns: int, record_ns: int) -> list[tuple[str, int, Any]]:
-        if self.next_ns is None:
+    def _due(self, stamp_ns: int, record_ns: int, end: bool = False
+             ) -> list[tuple[str, int, Any]]:
+        """The DEM messages and the diagnostics due at this cloud (all of them at the end
+        of the bag)."""
+        items = []
+        if self.next_ns is None and not end:
             self.next_ns = stamp_ns + self.period_ns
-        elif stamp_ns >= self.next_ns:
+        elif end or stamp_ns >= self.next_ns:  # type: ignore[operator]
             self.next_ns = stamp_ns + self.period_ns
-            return self.outputs(stamp_ns, record_ns)
-        return []
+            items = self.outputs(stamp_ns, record_ns)
+        if self.diagnostics_ns is None and not end:
+            self.diagnostics_ns = stamp_ns + DIAGNOSTICS_PERIOD_NS
+        elif end or stamp_ns >= self.diagnostics_ns:  # type: ignore[operator]
+            self.diagnostics_ns = stamp_ns + DIAGNOSTICS_PERIOD_NS
+            items.append(("/diagnostics", record_ns, self.diagnostics(stamp_ns)))
+        return items
 
     def outputs(self, stamp_ns: int, record_ns: int) -> list[tuple[str, int, Any]]:
         """The DEM messages now (none before any ground)."""
         return [("/" + name, record_ns, out) for name, out in self.stage.dem_outputs(stamp_ns)]
 
+    def diagnostics(self, stamp_ns: int):
+        """`dem_builder`'s `/diagnostics` message now."""
+        no_pose = self.reject_reasons.get(NO_POSE, 0)
+        rejected = sum(self.reject_reasons.values())
+        counts = {"received": self.counts["processed"] + rejected,
+                  "processed": self.counts["processed"], "rejected": rejected - no_pose,
+                  "dropped_no_pose": no_pose, "points_in": self.counts["points_in"],
+                  "points_out": self.counts["points_out"]}
+        return messages.diagnostics(messages.header(stamp_ns, ""), "dem_builder",
+                                    "/dem_builder", counts, self.reject_reasons,
+                                    self.latencies, messages.rate_hz(self.stamps),
+                                    self.stage.check_values())
+
+    def _count(self, stats: dict, stamp_ns: int) -> None:
+        """One cloud into the DEM: its stage stats (points in and out, seconds)."""
+        self.counts["processed"] += 1
+        self.counts["points_in"] += stats["points_in"]
+        self.counts["points_out"] += stats["points_out"]
+        self.latencies.append(stats["seconds"])
+        self.stamps.append(stamp_ns * 1e-9)
+
     def add_cloud(self, msg, pose: Pose | None, stamp_ns: int, record_ns: int) -> list:
         """A cloud whose ground the DEM finds itself (`dem.ground_source`)."""
-        self.stage.process(msg, pose)
+        self._count(self.stage.process(msg, pose), stamp_ns)
         return self._due(stamp_ns, record_ns)
+
+    def finish(self, stamp_ns: int, record_ns: int) -> list[tuple[str, int, Any]]:
+        """The end of the bag: the DEM as it stands and the last diagnostics."""
+        return self._due(stamp_ns, record_ns, end=True)
 
     def __call__(self, work: DemWork) -> Done:
         """A cloud's ground from the detector (or, without ground, the end of the bag)."""
+        self.reject_reasons = work.reject_reasons
         if work.ground_xyz is None:
-            items = self.outputs(work.stamp_ns, work.record_ns)
+            items = self.finish(work.stamp_ns, work.record_ns)
         else:
-            self.stage.add_ground(work.ground_xyz, work.ground_hag, stamp_ns=work.stamp_ns,
-                                  frame_id=work.frame_id, vehicle_xyz=work.vehicle_xyz)
+            stats = self.stage.add_ground(work.ground_xyz, work.ground_hag,
+                                          stamp_ns=work.stamp_ns, frame_id=work.frame_id,
+                                          vehicle_xyz=work.vehicle_xyz)
+            self._count(stats, work.stamp_ns)
             items = self._due(work.stamp_ns, work.record_ns)
-        return [(topic, stamp, _serialize(msg)) for topic, stamp, msg in items], None
+        return Done([(topic, stamp, _serialize(msg)) for topic, stamp, msg in items])
 
 
 def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage | None,
@@ -317,7 +394,8 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
     halves and the DEM each keep their state (ground context; towers seen; the rolling
     DEM) and see the clouds in order, so the result is the same as one process's.
     Otherwise the DEM work is done here. Malformed clouds are counted and skipped, as the
-    node drops them.
+    node drops them. Each stage's `/diagnostics` is due every second of the bag's time and
+    at its end (the detector's as a DetectorDiagnostics to drain).
     """
     cloud_topic = reader.pointcloud_topic(topic)
     odom = _odom_topics(reader)
@@ -333,6 +411,22 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                     and dem.shares_ground_with(detector.cfg))
     max_age = (detector or dem).cfg.odometry_max_age  # type: ignore[union-attr]
     schedule = DemSchedule(dem) if dem is not None and not share_ground else None
+    if schedule is not None:
+        schedule.reject_reasons = stats.reject_reasons  # (the same clouds reach both)
+    stamps: collections.deque[float] = collections.deque(maxlen=RATE_WINDOW)
+    diagnostics_ns: int | None = None
+
+    def diagnostics_due(stamp_ns: int, record_ns: int, end: bool = False):
+        nonlocal diagnostics_ns
+        if detector is None:
+            return
+        if diagnostics_ns is None and not end:
+            diagnostics_ns = stamp_ns + DIAGNOSTICS_PERIOD_NS
+        elif end or stamp_ns >= diagnostics_ns:  # type: ignore[operator]
+            diagnostics_ns = stamp_ns + DIAGNOSTICS_PERIOD_NS
+            yield DEFERRED, record_ns, DetectorDiagnostics(
+                stamp_ns, messages.rate_hz(stamps), dict(stats.reject_reasons), stats.counts())
+
     first_ns = last_ns = None
     n_clouds = reader.count([cloud_topic])
     bar = _progress(None, n_clouds, desc)
@@ -351,11 +445,12 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
             stamp_ns = messages.stamp_ns_of(msg.header)
             first_ns = stamp_ns if first_ns is None else first_ns
             last_ns = stamp_ns
+            stamps.append(stamp_ns * 1e-9)
             pose = poses.nearest(stamp_ns, max_age)
             if use_odom and pose is None:
                 stats.rejected += 1
-                key = "no odometry pose near the cloud's stamp"
-                stats.reject_reasons[key] = stats.reject_reasons.get(key, 0) + 1
+                stats.reject_reasons[NO_POSE] = stats.reject_reasons.get(NO_POSE, 0) + 1
+                yield from diagnostics_due(stamp_ns, record.stamp_ns)
                 continue
             t0 = time.perf_counter()
             try:
@@ -367,13 +462,15 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                         # the detector's ground is all the DEM needs: nothing to parse
                         deferred.append(DemWork(
                             work.stamp_ns, record.stamp_ns, work.frame_id,
-                            pose.position if pose is not None else None, *work.dem_ground()))
+                            pose.position if pose is not None else None, *work.dem_ground(),
+                            dict(stats.reject_reasons)))
                 dem_items = (schedule.add_cloud(msg, pose, stamp_ns, record.stamp_ns)
                              if schedule is not None else [])
             except CloudFormatError as exc:
                 stats.rejected += 1
                 key = reason_key(str(exc))
                 stats.reject_reasons[key] = stats.reject_reasons.get(key, 0) + 1
+                yield from diagnostics_due(stamp_ns, record.stamp_ns)
                 continue
             if detector is None:  # (the detector's time is counted when its work is done)
                 stats.latencies.append(time.perf_counter() - t0)
@@ -384,10 +481,14 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
             for job in deferred:
                 yield DEFERRED, record.stamp_ns, job
             yield from dem_items
+            yield from diagnostics_due(stamp_ns, record.stamp_ns)
+        if last_ns is not None:
+            yield from diagnostics_due(last_ns, last_ns, end=True)
         if last_ns is not None and share_ground:
-            yield DEFERRED, last_ns, DemWork(last_ns, last_ns)
+            yield DEFERRED, last_ns, DemWork(last_ns, last_ns,
+                                             reject_reasons=dict(stats.reject_reasons))
         elif last_ns is not None and schedule is not None:
-            yield from schedule.outputs(last_ns, last_ns)
+            yield from schedule.finish(last_ns, last_ns)
     finally:
         bar.close()
         stats.wall_seconds = time.perf_counter() - t_start
@@ -403,23 +504,37 @@ def drain(item: tuple[str, int, Any], *, detector: DetectorStage | None = None,
           ) -> list[tuple[str, int, Any]]:
     """The items to write for one item of `run_stages`. Deferred work is done now, by
     `detector` (ObstacleWork) or `schedule` (DemWork), or, when it was handed to a worker
-    process, its result awaited (a Future). The detector's seconds go to `stats`."""
+    process, its result awaited (a Future). The detector's seconds and obstacle points go
+    to `stats`, from which its diagnostics are made."""
     name, stamp_ns, payload = item
     if name != DEFERRED:
         return [item]
+    if isinstance(payload, DetectorDiagnostics):
+        return [("/diagnostics", stamp_ns, _detector_diagnostics(payload, stats))]
     if isinstance(payload, ObstacleWork):
         if detector is None:
             raise ValueError("deferred obstacle work needs a DetectorStage to do it")
-        items, seconds = finish_obstacles(detector, payload)
+        done = finish_obstacles(detector, payload)
     elif isinstance(payload, DemWork):
         if schedule is None:
             raise ValueError("deferred DEM work needs a DemSchedule to do it")
-        items, seconds = schedule(payload)
+        done = schedule(payload)
     else:
-        items, seconds = payload.result()  # a Future of a worker process
-    if seconds is not None and stats is not None:
-        stats.latencies.append(seconds)
-    return items
+        done = payload.result()  # a Future of a worker process
+    if done.seconds is not None and stats is not None:
+        stats.latencies.append(done.seconds)
+        stats.points_out += done.points_out
+    return done.items
+
+
+def _detector_diagnostics(due: DetectorDiagnostics, stats: ReplayStats | None):
+    """`obstacle_detector`'s `/diagnostics` message at `due`: its counts then, with the
+    latencies and obstacle points of the clouds before it, all drained by now."""
+    latencies = stats.latencies[-LATENCY_WINDOW:] if stats is not None else []
+    counts = {**due.counts, "points_out": stats.points_out if stats is not None else 0}
+    return messages.diagnostics(messages.header(due.stamp_ns, ""), "obstacle_detector",
+                                "/obstacle_detector", counts, due.reject_reasons, latencies,
+                                due.rate_hz)
 
 
 # The worker processes of `replay`: one for the detector's second half, one for the DEM,
@@ -458,9 +573,9 @@ def _work_in_worker(shared_job: SharedPickle) -> SharedPickle:
         assert _WORKER_DETECTOR is not None, "no detector in this worker"
         return to_shared(_WORKER_DETECTOR.classify(job), into=into)
     assert _WORKER_SCHEDULE is not None, "no DEM in this worker"
-    items, seconds = _WORKER_SCHEDULE(job)
-    return to_shared(([(t, ns, pickle.PickleBuffer(raw)) for t, ns, raw in items], seconds),
-                     into=into)
+    done = _WORKER_SCHEDULE(job)
+    return to_shared(done._replace(items=[(t, ns, pickle.PickleBuffer(raw))
+                                          for t, ns, raw in done.items]), into=into)
 
 
 class _Later:
@@ -508,8 +623,8 @@ class _DemLater(_Later):
     """A DEM job's `Done`."""
 
     def result(self, timeout: float | None = None) -> Done:
-        items, seconds = self._take(timeout)
-        return [(t, ns, bytes(raw)) for t, ns, raw in items], seconds
+        done = self._take(timeout)
+        return done._replace(items=[(t, ns, bytes(raw)) for t, ns, raw in done.items])
 
 
 class _WorkerProcesses:
@@ -647,7 +762,7 @@ def replay(src: Path, out: Path, *, topic: str | None = None, params_file: Path 
                 for name, stamp_ns, payload in run_stages(
                         reader, topic=topic, detector=detector, dem=dem, stats=stats,
                         passthrough=True):
-                    if name == DEFERRED:
+                    if name == DEFERRED and not isinstance(payload, DetectorDiagnostics):
                         payload = workers.submit(payload, detector)
                     writer.put((name, stamp_ns, payload))
             finally:

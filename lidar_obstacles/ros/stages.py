@@ -206,6 +206,13 @@ class DemStage:
         self.cfg = cfg
         self.pipeline.reconfigure(cfg)
 
+    def check_values(self) -> dict[str, str]:
+        """The DEM at its held-out check points (`thinning.check_points`), as of the last
+        `dem_outputs`, for the diagnostics: check_rmse_m, check_r2 ("-" until known) and
+        check_n."""
+        return {k: ("-" if v is None else f"{v:.4g}" if isinstance(v, float) else str(v))
+                for k, v in self.check_stats.items()}
+
     def shares_ground_with(self, detector_cfg: ObstacleDetectorConfig) -> bool:
         """True when the detector's ground of a message is the ground this stage would
         find: `dem.ground_source: detector` with the same filter, frame and input limits.
