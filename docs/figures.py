@@ -1,5 +1,13 @@
-"""Make docs/simplify_features.png: the AHN4 tile, its simplified cloud and the feature
-points of its buildings (what `lidar-obstacles simplify` and `features` give).
+"""Make the README's pictures of the real data in ../shared/data:
+
+- simplify_features.png: the AHN4 tile, its simplified cloud and the feature points of
+  its buildings (what `lidar-obstacles simplify` and `features` give);
+- the pictures `lidar-obstacles evaluate --report` draws, for three files: the errors on
+  ISPRS samp11 (isprs_samp11_errors.png) and its kappa per block
+  (isprs_samp11_blocks.png), the classes of a power-line corridor tile
+  (corridor_classes.png), and the error of samp11's DEM from the detected ground
+  against the DEM of the reference ground (isprs_samp11_dem_error.png). They are stored
+  with a 256-colour palette: a quarter of the size, no visible difference.
 
     .venv/bin/python docs/figures.py
 """
@@ -7,22 +15,48 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import tempfile
+
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from PIL import Image  # noqa: E402
 
 from lidar_obstacles.config import FeaturesConfig, SimplifyConfig  # noqa: E402
 from lidar_obstacles.core.features import gaussian_map_features  # noqa: E402
 from lidar_obstacles.core.simplify import simplify  # noqa: E402
+from lidar_obstacles.evaluate import evaluate  # noqa: E402
 from lidar_obstacles.io.las import read_las  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE.parents[1] / "shared" / "data"
 
 
+# (input, its report's picture, the name here)
+REPORT_PICTURES = [
+    ("isprs/samp11-utm.laz", "errors.png", "isprs_samp11_errors.png"),
+    ("isprs/samp11-utm.laz", "block_kappa.png", "isprs_samp11_blocks.png"),
+    ("ahn-corridor/07CZ2_14.laz", "classes.png", "corridor_classes.png"),
+    ("isprs/samp11-utm.laz", "dem_error.png", "isprs_samp11_dem_error.png"),
+]
+
+
+def report_pictures() -> None:
+    """Each input's evaluation report, and the pictures kept from it."""
+    for src in dict.fromkeys(src for src, _, _ in REPORT_PICTURES):
+        with tempfile.TemporaryDirectory() as tmp:
+            metrics = evaluate(DATA / src, report_dir=tmp)
+            print(src, "kappa", round(metrics["ground_object"]["kappa"], 3))
+            for _, picture, name in (r for r in REPORT_PICTURES if r[0] == src):
+                with Image.open(Path(tmp) / picture) as im:
+                    im.convert("RGB").quantize(256).save(HERE / name, optimize=True)
+                print(HERE / name)
+
+
 def main() -> None:
+    report_pictures()
     las = read_las(DATA / "ahn4" / "ahn_2496_9727.laz")
     xyz, pts = las.xyz, las.points
     simple = simplify(xyz, cfg=SimplifyConfig(), return_number=pts["return_number"],
