@@ -467,6 +467,9 @@ class NodeInputConfig:
                                "nearest in time")
     odometry_max_age: float = param(0.2, "clouds without an odometry pose this close in "
                                     "time are dropped", "s", min=0.0, max=10.0)
+    odometry_wait: float = param(0.5, "with `use_odometry`, how long a cloud whose pose has "
+                                 "not arrived yet waits for it before it is dropped (live "
+                                 "nodes; a bag has its poses)", "s", min=0.0, max=5.0)
     input: InputConfig = field(default_factory=InputConfig)
 
 

@@ -398,3 +398,51 @@ def test_clouds_the_busy_node_drops_are_counted(ros_node, monkeypatch):
         assert node.stats["processed"] in (1, 2)
     finally:
         node.destroy_node()
+
+
+def test_a_cloud_waits_for_its_late_odometry_pose(ros_node):
+    # Live, the pose of a cloud can come after it (the executor was busy, a best-effort
+    # pose was lost and the next one is on its way): with use_odometry the cloud waits
+    # up to `odometry_wait` for a pose within `odometry_max_age`, and was dropped before.
+    import threading
+
+    from rclpy.parameter import Parameter as RclpyParameter
+
+    from lidar_obstacles.ros import messages
+    from lidar_obstacles.ros.obstacle_detector import ObstacleDetectorNode
+    from lidar_obstacles.ros.stages import Pose
+
+    node = ObstacleDetectorNode()
+    try:
+        assert node.set_parameters([RclpyParameter("use_odometry", value=True)])[0].successful
+        rng = np.random.default_rng(0)
+        pts = np.zeros(2000, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+        pts["x"], pts["y"] = rng.uniform(0, 30, 2000), rng.uniform(0, 30, 2000)
+        cloud = messages.cloud(pts, messages.header(5 * 10**9, "lidar"))
+
+        def pose(stamp_ns: int) -> Pose:
+            return Pose(stamp_ns, np.array([100.0, 0.0, 40.0]), np.array([0.0, 0.0, 0.0, 1.0]),
+                        "map")
+
+        node.poses.add(pose(4 * 10**9))  # the last pose before: 1 s older than the cloud
+        late = threading.Timer(0.15, node.poses.add, [pose(5 * 10**9)])
+        late.start()
+        t0 = time.monotonic()
+        node._handle(cloud)
+        waited = time.monotonic() - t0
+        late.join()
+        assert node.stats["processed"] == 1 and node.stats["dropped_no_pose"] == 0
+        assert waited >= 0.14
+        # a pose that never comes: dropped after odometry_wait, counted with its reason
+        assert node.set_parameters([RclpyParameter("odometry_wait", value=0.2)])[0].successful
+        t0 = time.monotonic()
+        node._handle(messages.cloud(pts, messages.header(6 * 10**9, "lidar")))
+        assert 0.19 <= time.monotonic() - t0 < 2.0
+        assert node.stats["dropped_no_pose"] == 1
+        # poses already past the cloud's stamp, none close: no use waiting
+        node.poses.add(pose(9 * 10**9))
+        t0 = time.monotonic()
+        node._handle(messages.cloud(pts, messages.header(7 * 10**9, "lidar")))
+        assert time.monotonic() - t0 < 0.15 and node.stats["dropped_no_pose"] == 2
+    finally:
+        node.destroy_node()

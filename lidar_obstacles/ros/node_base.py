@@ -48,17 +48,18 @@ def output_qos(depth: int = 2, transient_local: bool = False) -> QoSProfile:
 
 class PoseBuffer:
     """Odometry poses of the last few seconds, looked up by nearest stamp. Thread-safe:
-    the executor adds poses while the worker thread looks them up."""
+    the executor adds poses while the worker thread looks them up, and may wait for them."""
 
     def __init__(self, horizon_s: float = 10.0) -> None:
         self.horizon_ns = int(horizon_s * 1e9)
         self._stamps: collections.deque[int] = collections.deque()
         self._poses: collections.deque[Pose] = collections.deque()
-        self._lock = threading.Lock()
+        self._lock = threading.Condition()
 
     def add(self, pose: Pose) -> None:
         with self._lock:
             self._add(pose)
+            self._lock.notify_all()
 
     def _add(self, pose: Pose) -> None:
         if self._stamps and pose.stamp_ns < self._stamps[-1]:
@@ -70,9 +71,21 @@ class PoseBuffer:
             self._stamps.popleft()
             self._poses.popleft()
 
-    def nearest(self, stamp_ns: int, max_age_s: float) -> Pose | None:
+    def nearest(self, stamp_ns: int, max_age_s: float, wait_s: float = 0.0) -> Pose | None:
+        """The pose nearest to stamp_ns among those held, if no more than max_age_s away;
+        else None. With wait_s > 0, a pose that is not there yet is waited for, up to
+        wait_s seconds (wall clock), unless later poses show none will come close: live,
+        odometry may arrive after the cloud it belongs to (a busy executor, a lost
+        best-effort message), and the cloud would be dropped for no fault of its own."""
+        deadline = time.monotonic() + wait_s
         with self._lock:
-            return self._nearest(stamp_ns, max_age_s)
+            while True:
+                pose = self._nearest(stamp_ns, max_age_s)
+                left = deadline - time.monotonic()
+                past = self._stamps and self._stamps[-1] > stamp_ns + max_age_s * 1e9
+                if pose is not None or past or left <= 0:
+                    return pose
+                self._lock.wait(left)
 
     def _nearest(self, stamp_ns: int, max_age_s: float) -> Pose | None:
         if not self._stamps:
@@ -208,7 +221,8 @@ class PipelineNode(Node):
 
     def _handle(self, msg: PointCloud2) -> None:
         stamp_ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
-        pose = self.poses.nearest(stamp_ns, self.cfg.odometry_max_age)
+        pose = self.poses.nearest(stamp_ns, self.cfg.odometry_max_age,
+                                  self.cfg.odometry_wait if self.cfg.use_odometry else 0.0)
         if self.cfg.use_odometry and pose is None:
             self._reject("no odometry pose near the cloud's stamp", counter="dropped_no_pose")
             return
