@@ -173,8 +173,8 @@ def test_replay_writes_each_nodes_diagnostics_on_the_bags_clock(sim_bag, tmp_pat
         stamp, level, last = seen[-1]
         assert level == 1  # WARN: a cloud dropped
         assert (last["received"], last["processed"], last["rejected"]) == ("20", "19", "1")
-        assert [k for k in last if k.startswith("rejected: ")] == [
-            "rejected: " + next(iter(summary["reject_reasons"]))]
+        assert [k for k in last if k.startswith("dropped: ")] == [
+            "dropped: " + next(iter(summary["reject_reasons"]))]
         assert float(last["rate_hz"]) == pytest.approx(10.0, rel=0.1)  # (DEM: clouds it got)
         assert float(last["latency_p95_ms"]) > 0
     detector = diag["obstacle_detector: processing"][-1][2]

@@ -146,17 +146,18 @@ def diagnostics(hdr: Header, name: str, hardware_id: str, counts: Mapping[str, i
                 reject_reasons: Mapping[str, int], latencies_s: Sequence[float],
                 rate: float, extra: Mapping[str, str] | None = None) -> DiagnosticArray:
     """One node's `/diagnostics` message: its status named "<name>: processing", with the
-    rate (Hz), the latency percentiles of (M,) per-cloud seconds, every count and every
-    reason a cloud was rejected. Level ERROR after a failure (a bug), WARN when clouds
-    were dropped for any reason (`DROPPED`), else OK. The nodes publish it every second;
-    `replay` writes it every second of the bag's time."""
+    rate (Hz), the latency percentiles of (M,) per-cloud seconds, every count and, as
+    "dropped: <reason>", the count of each reason a cloud gave no output. Level ERROR
+    after a failure (a bug), WARN when clouds were dropped for any reason (`DROPPED`),
+    else OK. The nodes publish it every second; `replay` writes it every second of the
+    bag's time."""
     lat = np.asarray(latencies_s, float) if len(latencies_s) else np.zeros(1)
     values = {"rate_hz": f"{rate:.2f}",
               "latency_p50_ms": f"{1e3 * np.percentile(lat, 50):.1f}",
               "latency_p95_ms": f"{1e3 * np.percentile(lat, 95):.1f}"}
     values.update({k: str(v) for k, v in counts.items()})
     values.update(extra or {})
-    values.update({f"rejected: {k}": str(v) for k, v in reject_reasons.items()})
+    values.update({f"dropped: {k}": str(v) for k, v in reject_reasons.items()})
     bad = sum(int(counts.get(k, 0)) for k in DROPPED)
     status = DiagnosticStatus(
         level=(DiagnosticStatus.ERROR if counts.get("failed") else
