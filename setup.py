@@ -21,7 +21,6 @@ setup(
     maintainer_email="dev@lidar-obstacles.invalid",
     description="Flight-obstacle extraction and rolling DEMs from airborne LiDAR for UAVs",
     license="Apache-2.0",
-    tests_require=["pytest"],
     entry_points={
         "console_scripts": [
             "obstacle_detector = lidar_obstacles.ros.obstacle_detector:main",

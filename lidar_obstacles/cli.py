@@ -52,16 +52,31 @@ def _namespace(text: str) -> str:
     return text
 
 
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Appends "(default: X)" to each option's help, except where the help already says
+    what the default is: a default of None or "" would print as "(default: None)" or
+    "(default: )", which tells nothing, so those options say what happens in their help."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if "(default" in (action.help or "") or action.default in (None, ""):
+            return action.help
+        return super()._get_help_string(action)
+
+
 class _Parser(argparse.ArgumentParser):
     """A usage mistake is bad input like any other: one line and exit status 2 (argparse
     would print the whole usage first). Defaults are shown in --help."""
 
     def __init__(self, *args, **kwargs) -> None:
-        kwargs.setdefault("formatter_class", argparse.ArgumentDefaultsHelpFormatter)
+        kwargs.setdefault("formatter_class", _HelpFormatter)
         super().__init__(*args, **kwargs)
 
     def error(self, message: str):  # type: ignore[override]
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+# What an option's default of None means when it names a params file.
+_DEFAULT_PARAMS = "(default: none, the defaults in config/*.yaml)"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -70,21 +85,22 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("demo", help="simulate a UAV flight and run the whole job on it")
     s.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
-    s.add_argument("--scene", choices=SCENES, default="mixed")
+    s.add_argument("--scene", choices=SCENES, default="mixed", help="simulated scene")
     s.add_argument("--duration", type=_positive, default=20.0, help="flight seconds")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=int, default=0, help="random seed of the scene and flight")
 
     s = sub.add_parser("simulate", help="write a labelled synthetic UAV flight bag")
     s.add_argument("out", type=Path, metavar="OUT_BAG")
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--scene", choices=SCENES, default="mixed")
+    s.add_argument("--seed", type=int, default=0, help="random seed of the scene and flight")
+    s.add_argument("--scene", choices=SCENES, default="mixed", help="simulated scene")
     s.add_argument("--duration", type=_positive, default=20.0, help="seconds of flight")
     s.add_argument("--frame", choices=("map", "sensor"), default="map",
                    help="clouds in the map frame, or in the sensor frame (use odometry)")
     s.add_argument("--rate", type=_between(0.01, 1000.0), default=10.0,
                    help="clouds per second")
     s.add_argument("--points", type=int, default=50_000, help="points per cloud")
-    s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",
+                   help="rosbag2 storage of the output bag")
 
     s = sub.add_parser("las2bag", help="stream a LAS/LAZ survey as PointCloud2 messages")
     s.add_argument("src", type=Path, metavar="IN.las")
@@ -92,37 +108,48 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--slice-seconds", type=_between(1e-3, 1e5), default=0.1,
                    help="GPS-time slice per message (and stamp spacing otherwise)")
     s.add_argument("--tile-size", type=_between(0.1, 1e6), default=None,
-                   help="cut square tiles of this edge (m) instead of GPS slices/strips")
+                   help="cut square tiles of this edge (m) instead of GPS slices/strips "
+                        "(default: none, GPS slices/strips)")
     s.add_argument("--strip-width", type=_between(0.1, 1e6), default=10.0,
                    help="without GPS time: strips of this width (m) along the longer axis")
-    s.add_argument("--topic", type=_topic, default="/points")
-    s.add_argument("--frame-id", default="map")
-    s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    s.add_argument("--topic", type=_topic, default="/points",
+                   help="PointCloud2 topic to write")
+    s.add_argument("--frame-id", default="map", help="frame_id of the clouds")
+    s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",
+                   help="rosbag2 storage of the output bag")
 
     s = sub.add_parser("replay", help="run the pipeline offline on every cloud of a bag")
     s.add_argument("src", type=Path, metavar="IN_BAG")
     s.add_argument("out", type=Path, metavar="OUT_BAG")
     s.add_argument("--topic", type=_topic, default=None,
                    help="PointCloud2 topic (default: the only/biggest)")
-    s.add_argument("--params-file", type=Path, default=None, help="ROS 2 params YAML")
-    s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    s.add_argument("--params-file", type=Path, default=None,
+                   help=f"ROS 2 params YAML {_DEFAULT_PARAMS}")
+    s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",
+                   help="rosbag2 storage of the output bag")
     s.add_argument("--no-dem", action="store_true", help="skip the DEM builder")
 
     s = sub.add_parser("play", help="publish a bag into the live ROS graph")
     s.add_argument("src", type=Path, metavar="IN_BAG")
     s.add_argument("--rate", type=_between(0.001, 1000.0), default=1.0, help="speed factor")
-    s.add_argument("--loop", action="store_true")
+    s.add_argument("--loop", action="store_true",
+                   help="start again from the beginning at the end, until Ctrl-C")
     s.add_argument("--topics", nargs="+", type=_topic, default=None,
-                   help="only these bag topics")
+                   help="only these bag topics (default: all)")
     s.add_argument("--namespace", type=_namespace, default="",
-                   help="publish under this namespace, e.g. /uav1")
+                   help="publish under this namespace, e.g. /uav1 (default: none, the bag's "
+                        "topic names)")
 
     s = sub.add_parser("export-dem", help="build the DEM of a bag and write a GeoTIFF")
     s.add_argument("src", type=Path, metavar="IN_BAG")
     s.add_argument("out", type=Path, metavar="OUT.tif")
-    s.add_argument("--topic", type=_topic, default=None)
-    s.add_argument("--params-file", type=Path, default=None)
-    s.add_argument("--crs", default=None, help="e.g. EPSG:32632 (default: from the bag)")
+    s.add_argument("--topic", type=_topic, default=None,
+                   help="PointCloud2 topic (default: the only/biggest)")
+    s.add_argument("--params-file", type=Path, default=None,
+                   help=f"ROS 2 params YAML (`dem_builder`'s `dem.*`) {_DEFAULT_PARAMS}")
+    s.add_argument("--crs", default=None,
+                   help="e.g. EPSG:32632 (default: the params file's export.crs, else the "
+                        "bag's)")
 
     for name, what, params in (
             ("simplify", "K-means++ simplification on normals",
@@ -133,24 +160,28 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument("out", type=Path, metavar="OUT",
                        help="a .las/.laz file for a LAS/LAZ input, a bag for a bag")
         s.add_argument("--params-file", type=Path, default=None,
-                       help=f"ROS 2 params YAML ({params})")
+                       help=f"ROS 2 params YAML ({params}) {_DEFAULT_PARAMS}")
         s.add_argument("--topic", type=_topic, default=None,
                        help="PointCloud2 topic (default: the only/biggest)")
-        s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+        s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",
+                       help="rosbag2 storage of an output bag")
 
     s = sub.add_parser("evaluate", help="compare the classes with the `classification` field")
     s.add_argument("src", type=Path, metavar="IN",
                    help="a replay's output bag, a labelled bag or a LAS/LAZ file "
                         "(with --benchmark isprs: the folder of the 15 samples)")
     s.add_argument("--params-file", type=Path, default=None,
-                   help="parameters of the pipeline run on a labelled input")
+                   help=f"parameters of the pipeline run on a labelled input {_DEFAULT_PARAMS}")
     s.add_argument("--report", type=Path, default=None, metavar="DIR",
-                   help="write report.html, metrics.json and PNGs here")
+                   help="write report.html, metrics.json and PNGs here (default: no report)")
     s.add_argument("--blocks", default="6x6", help="grid of the per-block kappa, e.g. 6x6")
-    s.add_argument("--topic", type=_topic, default=None)
+    s.add_argument("--topic", type=_topic, default=None,
+                   help="PointCloud2 topic of a labelled bag (default: a replay's /ground and "
+                        "/obstacles, else the only/biggest)")
     s.add_argument("--no-dem", action="store_true", help="skip the DEM comparison")
     s.add_argument("--benchmark", choices=("isprs",), default=None,
-                   help="run all ISPRS samples in IN with one parameter set")
+                   help="run all ISPRS samples in IN with one parameter set (default: none, IN "
+                        "is one input)")
 
     s = sub.add_parser("tune", help="search parameters on labelled inputs; write a params YAML")
     s.add_argument("src", type=Path, nargs="+", metavar="IN",
@@ -161,12 +192,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, default=Path("tuned.yaml"), help="params YAML to write")
     s.add_argument("--budget", default="10m", help="time budget, e.g. 90s, 10m, 1h")
     s.add_argument("--trials", type=int, default=200, help="candidates at most")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=int, default=0, help="random seed of the search")
     s.add_argument("--space", type=Path, default=None,
-                   help="YAML narrowing the search: {name: [min, max] | [choice, ...]}")
-    s.add_argument("--start", type=Path, default=None, help="params file of the first candidate")
+                   help="YAML narrowing the search: {name: [min, max] | [choice, ...]} "
+                        "(default: every tunable parameter over its declared range)")
+    s.add_argument("--start", type=Path, default=None,
+                   help="params file of the first candidate (default: the defaults in "
+                        "config/obstacle_detector.yaml)")
     s.add_argument("--objective", choices=("ground_kappa", "kappa", "total_error"),
-                   default="ground_kappa")
+                   default="ground_kappa",
+                   help="what the search optimises (the kappas up, total_error down)")
     return p
 
 

@@ -639,6 +639,31 @@ def _flatten_mapping(data: Mapping[str, Any], prefix: str = "") -> dict[str, Any
     return out
 
 
+def _yaml_problem(exc: Any) -> str:
+    """A PyYAML MarkedYAMLError as "line L, column C: problem" (1-based, as editors count)."""
+    mark = exc.problem_mark
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    return where + (exc.problem or str(exc))
+
+
+def read_yaml_file(path: str | Path, what: str) -> Any:
+    """The YAML document in `path`; ConfigError in one line naming `what` ("params file")
+    and the file when it is missing, unreadable or bad YAML (then with where and why)."""
+    import yaml
+
+    path = Path(path)
+    try:
+        return yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{what} not found: {path}") from None
+    except yaml.MarkedYAMLError as exc:
+        # PyYAML's message starts with its context ("while parsing a flow sequence"); what
+        # is wrong, and where, comes after it on lines a one-line error would cut off
+        raise ConfigError(f"{what} {path}: {_yaml_problem(exc)}".splitlines()[0]) from None
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{what} {path}: {exc}".splitlines()[0]) from None
+
+
 def load_params_file(path: str | Path, cls: type[T], node_name: str, *,
                      base: T | None = None) -> T:
     """Read a ROS 2 params YAML (``/**:``, ``<node>:`` or ``/**/<node>:`` with
@@ -648,15 +673,8 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str, *,
     file, bad YAML, unknown parameters or invalid values.
     """
     base = cls() if base is None else base
-    import yaml
-
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"params file not found: {path}") from None
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise ConfigError(f"params file {path}: {exc}".splitlines()[0]) from None
+    data = read_yaml_file(path, "params file")
     if data is None:
         return base
     if not isinstance(data, Mapping):

@@ -26,6 +26,7 @@ from lidar_obstacles.config import (
     flatten,
     load_params_file,
     params_of,
+    read_yaml_file,
     replace,
 )
 from lidar_obstacles.errors import ConfigError
@@ -75,12 +76,7 @@ def search_space(space_file: str | Path | None = None) -> list[Dimension]:
                                p.spec.log_scale, p.type is int)
             for p in infos.values() if p.spec.tunable}
     if space_file is not None:
-        import yaml
-
-        try:
-            data = yaml.safe_load(Path(space_file).read_text()) or {}
-        except (OSError, yaml.YAMLError) as exc:
-            raise ConfigError(f"space file {space_file}: {exc}".splitlines()[0]) from None
+        data = read_yaml_file(space_file, "space file") or {}
         if not isinstance(data, dict):
             raise ConfigError(f"space file {space_file}: expected a mapping of parameters")
         dims = {}

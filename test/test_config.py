@@ -121,6 +121,19 @@ def test_params_file_forms(tmp_path):
         load_params_file(broken, ObstacleDetectorConfig, "obstacle_detector")
 
 
+@pytest.mark.parametrize("text, expected", [
+    ("not: [valid", "line 1, column 12: expected ',' or ']', but got '<stream end>'"),
+    ("/**:\n  ros__parameters:\n    a: b: c\n",
+     "line 3, column 9: mapping values are not allowed here"),
+])
+def test_malformed_yaml_says_what_is_wrong_and_where(tmp_path, text, expected):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_params_file(bad, ObstacleDetectorConfig, "obstacle_detector")
+    assert str(info.value) == f"params file {bad}: {expected}"
+
+
 def test_flatten_roundtrip():
     cfg = DemBuilderConfig()
     flat = flatten(cfg)

@@ -116,6 +116,13 @@ def test_tune_rejects_bad_space(tmp_path):
                           str(data_file("isprs/samp51-utm.laz")), "--space", str(space)],
                          cwd=REPO, capture_output=True, text=True, timeout=120)
     assert res.returncode == 2 and "ransac.distance_threshold" in res.stderr
+    # bad YAML: where and what, in one line (it said only "while parsing a flow sequence")
+    from lidar_obstacles.errors import ConfigError
+    from lidar_obstacles.tune import search_space
+
+    space.write_text("ransac.distance_threshold: [0.1, 2\n")
+    with pytest.raises(ConfigError, match=r"space file .*: line 2, column 1: expected ',' or"):
+        search_space(space)
 
 
 def test_run_detector_stops_at_its_deadline_between_clouds(tmp_path):

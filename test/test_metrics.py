@@ -2,12 +2,13 @@
 from __future__ import annotations
 
 import json
+import re
 import warnings
 
 import numpy as np
 import pytest
 
-from conftest import data_file
+from conftest import REPO, data_file
 from lidar_obstacles.core import metrics as M
 from lidar_obstacles.errors import CloudFormatError, ConfigError
 
@@ -16,6 +17,14 @@ def test_groups():
     g = M.group_of([2, 8, 9, 11, 3, 4, 5, 6, 14, 15, 1, 7, 0, 26])
     assert [M.GROUPS[i] for i in g] == ["ground"] * 4 + ["vegetation"] * 3 + [
         "building", "wire", "tower"] + ["other"] * 4
+
+
+def test_readme_lists_every_top_level_key_of_the_metrics():
+    readme = (REPO / "README.md").read_text()
+    table = readme.split("### `evaluate` JSON keys", 1)[1].split("\n## ", 1)[0]
+    listed = {name.split(".")[0] for row in table.splitlines() if row.startswith("| `")
+              for name in re.findall(r"`([^`]+)`", row.split(" | ")[0])}
+    assert set(M.evaluate_classes([2, 5, 6], [2, 5, 5])) <= listed
 
 
 def test_hand_confusion_and_kappa():

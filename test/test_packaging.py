@@ -1,6 +1,7 @@
 """The package builds the ROS way, the core never needs ROS, the metadata is complete."""
 from __future__ import annotations
 
+import ast
 import os
 import re
 import shutil
@@ -59,6 +60,17 @@ def test_package_xml_declares_every_ros_import():
     assert ros_pkgs, "the ROS layer imports message packages"
     assert ros_pkgs <= deps, ros_pkgs - deps
     assert root.find("export/build_type").text == "ament_python"
+
+
+def test_setup_passes_no_option_setuptools_dropped():
+    # setuptools 72 dropped `setup.py test` and with it `tests_require`/`test_suite`: every
+    # install printed "Unknown distribution option: 'tests_require'". pytest comes from
+    # requirements-dev.txt instead.
+    tree = ast.parse((REPO / "setup.py").read_text())
+    (call,) = [node for node in ast.walk(tree) if isinstance(node, ast.Call)
+               and isinstance(node.func, ast.Name) and node.func.id == "setup"]
+    assert not {k.arg for k in call.keywords} & {"tests_require", "test_suite"}
+    assert re.search(r"^pytest==", (REPO / "requirements-dev.txt").read_text(), re.M)
 
 
 def _workspace(tmp_path: Path) -> Path:

@@ -7,10 +7,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lidar_obstacles.errors import LasError
+
+if TYPE_CHECKING:  # laspy is imported on first use
+    from laspy import LasData
 
 # Fields carried from LAS into PointCloud2, with the dtype they get there.
 LAS_FIELDS: tuple[tuple[str, str], ...] = (
@@ -69,22 +73,53 @@ def _crs_from_vlrs(header) -> tuple[str, int | None]:
     return wkt, epsg
 
 
+def _read_laspy(path: Path) -> LasData:
+    """``laspy.read(path)``, or LasError "cannot read LAS file <path>: <why>" in one line.
+
+    A file cut short (an interrupted copy or download) is called truncated: of a cut LAS,
+    laspy reads the whole records left without a word (and with none left the file "has no
+    points"), or says "buffer size must be a multiple of element size"; of a cut LAZ, lazrs
+    says "IoError: failed to fill whole buffer". None of that tells what is wrong.
+    """
+    import laspy
+
+    what = f"cannot read LAS file {path}"
+    try:
+        with laspy.open(str(path)) as reader:
+            header = reader.header
+            if header.are_points_compressed:
+                try:
+                    return reader.read()
+                except Exception as exc:  # lazrs/laszip have their own types; the header was read
+                    detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                    raise LasError(f"{what}: truncated or corrupt ({detail})") from None
+            # LAS: the point records are fixed-size and end where the header says (only
+            # extended VLRs may follow), so the file's size tells a cut file
+            record = header.point_format.size
+            expected = header.offset_to_point_data + header.point_count * record
+            size = path.stat().st_size
+            if size < expected:
+                raise LasError(f"{what}: truncated or corrupt ({size} bytes, but its header says "
+                               f"{header.point_count} points of {record} bytes after "
+                               f"{header.offset_to_point_data}: {expected} bytes)")
+            return reader.read()
+    except LasError:
+        raise
+    except Exception as exc:  # laspy raises many types for corrupt files
+        raise LasError(f"{what}: {exc}".splitlines()[0]) from None
+
+
 def read_las(path: str | Path) -> LasCloud:
     """Read a LAS or LAZ file into a :class:`LasCloud`.
 
     Raises LasError (one line naming the file and the problem) for a missing, unreadable
     or empty file.
     """
-    import laspy
-
     path = Path(path)
     if not path.is_file():
         raise LasError(f"not a LAS file, a folder: {path}" if path.is_dir()
                        else f"LAS file not found: {path}")
-    try:
-        las = laspy.read(str(path))
-    except Exception as exc:  # laspy raises many types for corrupt files
-        raise LasError(f"cannot read LAS file {path}: {exc}".splitlines()[0]) from None
+    las = _read_laspy(path)
     n = len(las.points)
     if n == 0:
         raise LasError(f"LAS file has no points: {path}")
@@ -114,10 +149,7 @@ def write_las_subset(src: str | Path, keep: np.ndarray, out: str | Path) -> int:
     src, out = Path(src), Path(out)
     if not out.parent.is_dir():
         raise LasError(f"output folder does not exist: {out.parent}")
-    try:
-        las = laspy.read(str(src))
-    except Exception as exc:  # laspy raises many types for corrupt files
-        raise LasError(f"cannot read LAS file {src}: {exc}".splitlines()[0]) from None
+    las = _read_laspy(src)
     keep = np.asarray(keep, dtype=bool)
     if keep.shape != (len(las.points),):
         raise LasError(f"{src}: keep mask has {keep.shape} entries for {len(las.points)} points")

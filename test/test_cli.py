@@ -1,0 +1,58 @@
+"""The command line's --help: what the README promises of it."""
+from __future__ import annotations
+
+import argparse
+import re
+
+import pytest
+
+from lidar_obstacles.cli import build_parser, main
+
+
+def _subcommands() -> dict[str, argparse.ArgumentParser]:
+    """Every subcommand's parser, as the parser itself lists them."""
+    parser = build_parser()
+    (sub,) = (a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(sub.choices)
+
+
+def _option_entries(parser: argparse.ArgumentParser) -> dict[str, str]:
+    """Each option's entry in the rendered --help, unwrapped onto one line, by its first
+    option string."""
+    entries: dict[str, str] = {}
+    current = None
+    for line in parser.format_help().splitlines():
+        if re.match(r"  -", line):
+            current = line.split()[0].rstrip(",")
+            entries[current] = line.strip()
+        elif current is not None and line.startswith("   "):
+            entries[current] += " " + line.strip()
+        else:
+            current = None
+    return entries
+
+
+@pytest.mark.parametrize("command", sorted(_subcommands()))
+def test_help_shows_every_options_default_once(command):
+    parser = _subcommands()[command]
+    entries = _option_entries(parser)
+    options = [a for a in parser._actions if a.option_strings]
+    assert set(entries) == {a.option_strings[0] for a in options}
+    for action in options:
+        entry = entries[action.option_strings[0]]
+        if isinstance(action, argparse._HelpAction):  # "show this help message and exit"
+            continue
+        assert entry.count("(default") == 1, entry
+        assert "(default: None)" not in entry and "(default: )" not in entry, entry
+
+
+def test_a_malformed_params_file_is_one_line_with_its_position_and_exit_2(tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("not: [valid")
+    # (the params file is read before the bag is opened)
+    code = main(["export-dem", str(tmp_path / "no_bag"), str(tmp_path / "o.tif"),
+                 "--params-file", str(bad)])
+    assert code == 2
+    assert capsys.readouterr().err == (
+        f"lidar-obstacles export-dem: error: params file {bad}: line 1, column 12: "
+        "expected ',' or ']', but got '<stream end>'\n")
