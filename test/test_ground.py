@@ -172,15 +172,30 @@ def test_context_remembers_only_the_inside_of_a_strip():
     cfg = replace(ObstacleDetectorConfig(), {"context.radius": 50.0, "context.margin": 10.0,
                                              "context.cell": 1.0}).context
     ctx = GroundContext(cfg)
-    gx, gy = np.meshgrid(np.arange(0, 60, 0.5), np.arange(0, 30, 0.5))
+    gx, gy = np.meshgrid(np.arange(0, 60, 0.5), np.arange(0, 40, 0.5))
     strip = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
     ctx.update(strip, stamp=0.0, cloud_xy=strip[:, :2])
-    kept = ctx.points_near(np.array([0.0, 0.0]), np.array([60.0, 30.0]), 0.0)
-    # 10 m in from every side of a 60 x 30 m strip: x 10..50, y 10..20
+    kept = ctx.points_near(np.array([0.0, 0.0]), np.array([60.0, 40.0]), 0.0)
+    # 10 m in from every side of a 60 x 40 m strip: x 10..50, y 10..30
     assert kept is not None
     assert kept[:, 0].min() >= 10 - 1 and kept[:, 0].max() <= 50 + 1
-    assert kept[:, 1].min() >= 10 - 1 and kept[:, 1].max() <= 20 + 1
-    assert len(kept) > 0.8 * 40 * 10
+    assert kept[:, 1].min() >= 10 - 1 and kept[:, 1].max() <= 30 + 1
+    assert len(kept) > 0.8 * 40 * 20
+
+
+def test_context_remembers_the_middle_of_a_thin_strip():
+    """A survey's 0.1 s slices are ~5 m wide: none of a slice lies 10 m inside it, so
+    before, no slice was ever remembered. The middle half of a thin strip is."""
+    cfg = replace(ObstacleDetectorConfig(), {"context.radius": 50.0, "context.margin": 10.0,
+                                             "context.cell": 1.0}).context
+    ctx = GroundContext(cfg)
+    gx, gy = np.meshgrid(np.arange(0, 60, 0.5), np.arange(0, 6, 0.5))
+    strip = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
+    ctx.update(strip, stamp=0.0, cloud_xy=strip[:, :2])
+    kept = ctx.points_near(np.array([0.0, 0.0]), np.array([60.0, 6.0]), 0.0)
+    assert kept is not None  # y 1.5..4.5 of 0..6, x 1.5..58.5
+    assert kept[:, 1].min() >= 1.0 and kept[:, 1].max() <= 5.0
+    assert kept[:, 0].min() <= 3.0 and kept[:, 0].max() >= 57.0
 
 
 def test_inpaint_single_known_cell_and_one_row():

@@ -182,16 +182,17 @@ def test_a_tower_seen_before_is_known_from_its_legs():
     assert (c_known.classes[legs] == 15).mean() > 0.8
 
 
-def test_a_tall_tree_under_a_span_is_no_tower_but_the_towers_are():
-    """Three spans over 360 m; a 19 m tree stands beside the middle span's wire where it sags
-    lowest, its crown within 2 m of it. The wires rise away from the tree on both sides but
-    sag away from the towers."""
-    rng = np.random.default_rng(6)
+def _three_spans(rng, wire_y: float = 5.0, seen_up_to: float = 99.0):
+    """Three spans over 360 m between towers at x = -60 and 60 (26 m lattices, conductors at
+    y = +-wire_y hanging 25 m high), the towers seen only below `seen_up_to` m; a 19 m tree
+    stands beside the middle span's wire where it sags lowest, its crown within 2 m of it.
+    The wires rise away from the tree on both sides but sag away from the towers."""
     parts, labels = [], []
 
     def add(p, c):
-        parts.append(p)
-        labels.append(np.full(len(p), c))
+        keep = (p[:, 2] < seen_up_to) | (c != 15)
+        parts.append(p[keep])
+        labels.append(np.full(int(keep.sum()), c))
 
     add(np.column_stack([rng.uniform(-180, 180, (60000, 1)), rng.uniform(-30, 30, (60000, 1)),
                          rng.normal(0, 0.02, (60000, 1))]), 2)
@@ -200,23 +201,47 @@ def test_a_tall_tree_under_a_span_is_no_tower_but_the_towers_are():
         half = 4.0 * (1 - h / 32)
         add(np.column_stack([tx + rng.choice([-1, 1], 2000) * half,
                              rng.choice([-1, 1], 2000) * half, h]), 15)
-        add(np.column_stack([np.full(300, tx), rng.uniform(-5.5, 5.5, 300), np.full(300, 25.5)]),
-            15)  # the arm the conductors hang from
+        # bracing every 3 m: the lattice is one object at any height
+        level = rng.integers(1, 9, 800) * 3.0
+        edge = 4.0 * (1 - level / 32)
+        along = rng.uniform(-1, 1, 800) * edge
+        side = rng.choice([-1, 1], 800) * edge
+        flip = rng.random(800) < 0.5
+        add(np.column_stack([tx + np.where(flip, along, side), np.where(flip, side, along),
+                             level]), 15)
+        add(np.column_stack([np.full(300, tx), rng.uniform(-wire_y - 0.5, wire_y + 0.5, 300),
+                             np.full(300, 25.5)]), 15)  # the arm the conductors hang from
     for a in (-180.0, -60.0, 60.0):  # spans between -180..-60, -60..60, 60..180
         s = np.linspace(a, a + 120, 1200)
         mid = a + 60
-        for y in (-5.0, 5.0):
+        for y in (-wire_y, wire_y):
             add(np.column_stack([s, np.full_like(s, y), 25 - 0.002 * (3600 - (s - mid) ** 2)]), 14)
     crown = rng.normal(0, 1.0, (4000, 3)) * [2.0, 2.0, 2.0] + [0, -9, 15.5]
     trunk = np.column_stack([rng.normal(0, 0.1, (300, 1)), rng.normal(-9, 0.1, (300, 1)),
                              rng.uniform(0.5, 12, (300, 1))])
     add(np.concatenate([crown[crown[:, 2] < 19.0], trunk]), 5)
-    xyz, truth = np.concatenate(parts), np.concatenate(labels)
+    return np.concatenate(parts), np.concatenate(labels)
+
+
+def test_a_tall_tree_under_a_span_is_no_tower_but_the_towers_are():
+    xyz, truth = _three_spans(np.random.default_rng(6))
     res = classify_obstacles(xyz, truth == 2, xyz[:, 2].astype(np.float32), cfg=CFG.obstacles)
     c = res.classes
     assert (c[truth == 15] == 15).mean() > 0.8
     assert (c[truth == 5] == 15).mean() < 0.01  # the tree under the span
     assert len(res.towers) == 2
+
+
+def test_a_tower_seen_only_below_its_arms_carries_the_wires_beside_it():
+    """A flight below the tops sees a tower up to 21 m and its conductors 4 m aside and 4 m
+    higher, hanging from arms it does not see (the simulator's corridor): no wire point is
+    within 3 m of the tower, but the wires hang from it."""
+    xyz, truth = _three_spans(np.random.default_rng(7), wire_y=4.0, seen_up_to=21.0)
+    res = classify_obstacles(xyz, truth == 2, xyz[:, 2].astype(np.float32), cfg=CFG.obstacles)
+    c = res.classes
+    assert (c[truth == 15] == 15).mean() > 0.8
+    assert (c[truth == 5] == 15).mean() < 0.01
+    assert (c[truth == 14] == 14).mean() > 0.95
 
 
 def test_isolated_points_match_a_brute_force_count():
@@ -277,3 +302,35 @@ def test_a_ring_of_tall_things_is_no_tower_and_no_crash():
     res = classify_obstacles(xyz, ground, xyz[:, 2].astype(np.float32), cfg=CFG.obstacles)
     assert not (res.classes[-len(extra):] == 15).any()
     assert (res.classes[truth == 15] == 15).mean() > 0.8  # the real towers still are
+
+
+def _wire_strip(x0: float, x1: float, seed: int):
+    """Flat ground over x 0..80 and a wire 20 m up along y = 5, seen from x0 to x1 only."""
+    rng = np.random.default_rng(seed)
+    g = np.column_stack([rng.uniform(0, 80, 8000), rng.uniform(0, 10, 8000),
+                         rng.normal(0, 0.02, 8000)])
+    s = np.arange(x0, x1, 0.1)
+    w = np.column_stack([s, np.full_like(s, 5.0), np.full_like(s, 20.0)])
+    xyz = np.concatenate([g, w])
+    ground = np.arange(len(xyz)) < len(g)
+    return xyz, ground, np.where(ground, 0.0, xyz[:, 2]).astype(np.float32)
+
+
+def test_a_short_piece_continuing_a_remembered_wire_is_wire():
+    """At a wire's height a narrow strip catches it in pieces shorter than WIRE_MIN_RUN:
+    one that continues a wire of an earlier message is wire, until it is forgotten."""
+    from lidar_obstacles.core.obstacles import WIRE_MIN_RUN
+    from lidar_obstacles.core.pipeline import WIRE_MEMORY_SECONDS, GroundStep, ObstacleDetector
+
+    def step(det, x0, x1, stamp):
+        xyz, ground, hag = _wire_strip(x0, x1, int(stamp))
+        res = det.obstacle_step(GroundStep(xyz, ground, hag, stamp, None, {}))
+        return (res.classes[~ground] == 14).mean()
+
+    assert 6.0 < WIRE_MIN_RUN
+    assert step(ObstacleDetector(), 32.0, 38.0, 0.0) == 0.0  # alone: too short
+    det = ObstacleDetector()
+    assert step(det, 0.0, 30.0, 0.0) == 1.0
+    assert step(det, 32.0, 38.0, 1.0) == 1.0  # 2 m on from the remembered wire
+    assert step(det, 70.0, 76.0, 2.0) == 0.0  # far from any wire seen
+    assert step(det, 40.0, 46.0, 1.0 + WIRE_MEMORY_SECONDS + 1.0) == 0.0  # forgotten

@@ -6,7 +6,9 @@ the main axis and the normal (`local_shape`).
 
 1. Noise (7): points with too few neighbours within `noise_radius`, or far below ground.
 2. Wires (14): linear, near-horizontal points high above ground with empty space below
-   them, kept only when they join into long runs (a wire spans tens of metres).
+   them, kept only when they join into long runs (a wire spans tens of metres). The
+   pipeline remembers the wires of earlier messages: a short piece that continues one is
+   wire too (at a wire's height a narrow scan strip catches it in pieces of a few metres).
 3. The other points above `min_height` are grouped into objects: connected components of a
    voxel grid of edge `cluster_distance` (26-neighbourhood). Towers (15) are the tall
    objects that carry wires: wires touch their column, none passes above, and away from
@@ -53,6 +55,7 @@ MAX_NEIGHBOURS = 32  # of the shape neighbourhoods: more add little but cost tim
 BELOW_GROUND_NOISE = 1.5  # m: points this far below the ground surface are noise
 WIRE_GAP = 2.5  # m: a wire point has no other point from this far below it up to 0.5 m
 WIRE_MIN_RUN = 10.0  # m: wire candidates joined into shorter runs are not wires
+WIRE_MEMORY_VOXEL = 0.5  # m: the wires a message passes on are thinned to one point per voxel
 WIRE_LINK = 4.0  # m: voxel edge joining wire candidates into runs (earth wires: 2-3 m gaps)
 WIRE_STEP = 1.5  # m: how far a wire is followed from a known wire point per round
 WIRE_TUBE = 0.15  # m: off a wire's line a followed point may lie (measured: 0.25 took leaves)
@@ -60,6 +63,7 @@ WIRE_DRIFT = 0.5  # m: off the line of the known wire a followed chain may end (
 WIRE_FOLLOW_ROUNDS = 12  # rounds of following: ~18 m of crown or clutter
 TOWER_WIRE_GAP = 3.0  # m: a tower has wire points this close to it
 TOWER_PEAK = 5.0  # m: wire this little above a tower's top hangs from its peak
+TOWER_ARM = 4.5  # m: ... or from its arms, this far from the axis (a low flight sees no peak)
 SAG_NEAR, SAG_FAR = 15.0, 40.0  # m: ring around a tower where its wires must hang lower
 SAG_MIN_DROP = 0.3  # m: how much lower (95th percentile of the wire there)
 TOWER_BASE = 0.2  # a tower's legs stand within this share of its height from its axis
@@ -86,13 +90,16 @@ class ObstacleObject:
 @dataclass(frozen=True)
 class ObstacleClasses:
     """classes: (N,) uint8 ASPRS; object_id: (N,) int32 (-1 outside objects); towers:
-    (T, 3) x, y, radius (m) of the towers recognised, for the next message's known_towers."""
+    (T, 3) x, y, radius (m) of the towers recognised, for the next message's known_towers;
+    wires: (W, 3) m, the wire points thinned to one per WIRE_MEMORY_VOXEL, for its
+    known_wires."""
 
     classes: np.ndarray
     object_id: np.ndarray
     objects: tuple[ObstacleObject, ...]
     timings: dict[str, float] = field(default_factory=dict)
     towers: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    wires: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     @staticmethod
     def expand(part: "ObstacleClasses", where: np.ndarray, fill: int) -> "ObstacleClasses":
@@ -101,7 +108,8 @@ class ObstacleClasses:
         classes = np.full(len(where), fill, np.uint8)
         object_id = np.full(len(where), -1, np.int32)
         classes[where], object_id[where] = part.classes, part.object_id
-        return ObstacleClasses(classes, object_id, part.objects, part.timings, part.towers)
+        return ObstacleClasses(classes, object_id, part.objects, part.timings, part.towers,
+                               part.wires)
 
 
 def search_tree(points: np.ndarray) -> cKDTree:
@@ -364,9 +372,10 @@ def _label_stats(labels: np.ndarray, xyz: np.ndarray, hag: np.ndarray
 
 
 def _wires(xyz: np.ndarray, cand: np.ndarray, hag: np.ndarray, shape: LocalShape,
-           cfg: ObstaclesConfig) -> np.ndarray:
+           cfg: ObstaclesConfig, known: np.ndarray) -> np.ndarray:
     """(M,) bool over the candidates `cand`: linear, near-horizontal points high above ground
-    with empty space below, joined into runs of at least WIRE_MIN_RUN metres."""
+    with empty space below, joined into runs of at least WIRE_MIN_RUN metres, counting the
+    wire points `known` (K, 3) m from earlier messages that they continue."""
     wire_like = ((shape.linearity > cfg.wire_linearity)
                  & (np.abs(shape.axis[:, 2]) < np.sin(np.radians(cfg.wire_max_slope)))
                  & (hag[cand] > cfg.wire_min_clearance))
@@ -374,9 +383,14 @@ def _wires(xyz: np.ndarray, cand: np.ndarray, hag: np.ndarray, shape: LocalShape
     wl = wl[_empty_below(xyz, cand[wl], cand[~wire_like])]
     is_wire = np.zeros(len(cand), bool)
     if len(wl):
-        runs = voxel_components(xyz[cand[wl]], WIRE_LINK)
-        _, length, _ = _label_stats(runs, xyz[cand[wl]], hag[cand[wl]])
-        is_wire[wl[length[runs] >= WIRE_MIN_RUN]] = True
+        pts = xyz[cand[wl]]
+        if len(known):
+            # enough of the known wire to make up a run (its far parts change nothing)
+            lo, hi = column_min(pts) - WIRE_MIN_RUN, column_max(pts) + WIRE_MIN_RUN
+            pts = np.concatenate([pts, known[np.all((known >= lo) & (known <= hi), axis=1)]])
+        runs = voxel_components(pts, WIRE_LINK)
+        _, length, _ = _label_stats(runs, pts, np.zeros(len(pts)))
+        is_wire[wl[length[runs[:len(wl)]] >= WIRE_MIN_RUN]] = True
     return is_wire
 
 
@@ -563,9 +577,10 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
             continue
         dist, near = wire_tree.query(p[column], distance_upper_bound=TOWER_WIRE_GAP)
         col_top = p[column, 2].max()
-        # The earth wire hangs from the peak, a thin spike a scanner may miss: wire right
-        # over the top (within TOWER_PEAK) is attached to it, not passing over it.
-        peak = np.asarray(wire_xy_tree.query_ball_point(top, r=TOWER_WIRE_GAP), np.int64)
+        # The earth wire hangs from the peak, a thin spike a scanner may miss, and the
+        # conductors from arms a flight below the top may not see: wire right over the top
+        # (within TOWER_PEAK, and TOWER_ARM aside) is attached to it, not passing over it.
+        peak = np.asarray(wire_xy_tree.query_ball_point(top, r=TOWER_ARM), np.int64)
         peak = peak[(wire_xyz[peak, 2] >= col_top) & (wire_xyz[peak, 2] <= col_top + TOWER_PEAK)]
         touching = np.unique(np.concatenate([near[np.isfinite(dist)], peak]))
         over = wire_xy_tree.query_ball_point(p[column & (h > 0.5 * top_h), :2],
@@ -589,10 +604,12 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
 
 def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground: np.ndarray, *,
                        cfg: ObstaclesConfig, rng: np.random.Generator | None = None,
-                       known_towers: np.ndarray | None = None) -> ObstacleClasses:
+                       known_towers: np.ndarray | None = None,
+                       known_wires: np.ndarray | None = None) -> ObstacleClasses:
     """Classes of every point of (N, 3) float64 xyz (m) given the ground mask (N,) bool and
     the height above ground (N,) float32 m (NaN: unknown, taken as 0). known_towers: (K, 3)
-    x, y, radius (m) of towers recognised in earlier messages (ObstacleClasses.towers)."""
+    x, y, radius (m) of towers recognised in earlier messages (ObstacleClasses.towers);
+    known_wires: (W, 3) m, wire points of earlier messages (ObstacleClasses.wires)."""
     t0 = time.perf_counter()
     rng = rng or np.random.default_rng(0)
     n = len(xyz)
@@ -612,15 +629,17 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
     cand = nong[hag[nong] >= cfg.min_height]
     t1 = time.perf_counter()
     objects: list[ObstacleObject] = []
-    towers = np.zeros((0, 3))
+    towers = wires = np.zeros((0, 3))
+    known_wires = np.zeros((0, 3)) if known_wires is None else np.asarray(known_wires, float)
     if len(cand) >= 3:
         shape = local_shape(xyz[cand], cfg.feature_radius)
         # 2. wires
-        is_wire = _wires(xyz, cand, hag, shape, cfg)
+        is_wire = _wires(xyz, cand, hag, shape, cfg, known_wires)
         classes[cand[is_wire]] = WIRE
         t2 = time.perf_counter()
-        # 3. objects of the rest; towers among the tall ones
-        wire_xyz = xyz[cand[is_wire]]
+        # 3. objects of the rest; towers among the tall ones, by the wires of this message
+        # and of earlier ones (a strip may catch a tower but not the wires it carries)
+        wire_xyz = np.concatenate([xyz[cand[is_wire]], known_wires])
         rest = np.flatnonzero(~is_wire)
         labels = voxel_components(xyz[cand[rest]], cfg.cluster_distance)
         count, extent, height = _label_stats(labels, xyz[cand[rest]], hag[cand[rest]])
@@ -654,6 +673,9 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
                 xyz[ground_ids], distance_upper_bound=TOWER_FOOT_REACH,
                 workers=_workers(len(ground_ids)))
             classes[ground_ids[np.isfinite(dist)]] = TOWER
+        if is_wire.any():
+            w = xyz[cand[is_wire]]
+            wires, _ = _voxel_centroids(w, column_min(w), WIRE_MEMORY_VOXEL)
         for mask in (is_building, is_wire):
             ids = cand[mask]
             if len(ids):
@@ -667,7 +689,7 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
     t4 = time.perf_counter()
     return ObstacleClasses(classes, object_id, tuple(objects),
                            {"noise": t1 - t0, "wires": t2 - t1, "objects": t3 - t2,
-                            "summaries": t4 - t3, "total": t4 - t0}, towers)
+                            "summaries": t4 - t3, "total": t4 - t0}, towers, wires)
 
 
 def _objects(xyz: np.ndarray, hag: np.ndarray, classes: np.ndarray,

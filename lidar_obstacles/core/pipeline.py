@@ -2,10 +2,10 @@
 
 `ObstacleDetector.process` runs ground filtering (with the rolling ground context of earlier
 messages; `ground_step`), then obstacle classification and the clearance grid
-(`obstacle_step`, which remembers the towers it saw). `DemPipeline.process` finds the
+(`obstacle_step`, which remembers the towers and wires it saw). `DemPipeline.process` finds the
 ground (K-means or the detector's filter) and updates the rolling DEM. Results are values;
-the only long-lived state is the ground context (`StreamingGround`), the towers and the
-rolling DEM, each held by one explicit object, so the halves can run in different
+the only long-lived state is the ground context (`StreamingGround`), the towers and wires,
+and the rolling DEM, each held by one explicit object, so the halves can run in different
 processes (`replay`).
 """
 from __future__ import annotations
@@ -28,6 +28,9 @@ CHECK_MESSAGES = 20
 TOWER_MEMORY_SECONDS = 60.0  # s: how long a recognised tower is remembered
 TOWER_MEMORY_SIZE = 256  # towers remembered at most (bounded memory on any flight)
 TOWER_MEMORY_RADIUS = 50.0  # m: remembered towers this far outside a cloud are offered
+WIRE_MEMORY_SECONDS = 30.0  # s: how long wire points are remembered
+WIRE_MEMORY_SIZE = 40000  # wire points remembered at most (0.5 m apart: 20 km of conductor)
+WIRE_MEMORY_RADIUS = 40.0  # m: remembered wire this far outside a cloud is offered (SAG_FAR)
 
 
 @dataclass(frozen=True)
@@ -151,12 +154,14 @@ class ObstacleDetector:
         self._obstacle_rng = np.random.default_rng(self.cfg.ransac.seed)
         self._feature_rng = np.random.default_rng(self.cfg.features.seed)
         self._towers = np.zeros((0, 4))  # x, y, radius (m), stamp (s) of towers seen
+        self._wires = np.zeros((0, 4))  # x, y, z (m), stamp (s) of wire points seen
 
-    def _known_towers(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-        """(K, 3) remembered towers (x, y, radius m) near the box lo..hi."""
+    def _known_towers(self, lo: np.ndarray, hi: np.ndarray, stamp: float) -> np.ndarray:
+        """(K, 3) remembered towers (x, y, radius m) near the box lo..hi, not too old."""
         t = self._towers
-        near = np.all((t[:, :2] >= lo - TOWER_MEMORY_RADIUS)
-                      & (t[:, :2] <= hi + TOWER_MEMORY_RADIUS), axis=1)
+        near = (np.all((t[:, :2] >= lo - TOWER_MEMORY_RADIUS)
+                       & (t[:, :2] <= hi + TOWER_MEMORY_RADIUS), axis=1)
+                & (t[:, 3] >= stamp - TOWER_MEMORY_SECONDS))
         return t[near, :3]
 
     def _remember_towers(self, towers: np.ndarray, stamp: float) -> None:
@@ -166,6 +171,23 @@ class ObstacleDetector:
         t = np.concatenate([new, self._towers])
         t = t[t[:, 3] >= stamp - TOWER_MEMORY_SECONDS]
         self._towers = t[:TOWER_MEMORY_SIZE]
+
+    def _known_wires(self, lo: np.ndarray, hi: np.ndarray, stamp: float) -> np.ndarray:
+        """(W, 3) remembered wire points (m) near the box lo..hi, not too old."""
+        w = self._wires
+        near = (np.all((w[:, :2] >= lo - WIRE_MEMORY_RADIUS)
+                       & (w[:, :2] <= hi + WIRE_MEMORY_RADIUS), axis=1)
+                & (w[:, 3] >= stamp - WIRE_MEMORY_SECONDS))
+        return w[near, :3]
+
+    def _remember_wires(self, wires: np.ndarray, stamp: float) -> None:
+        """Keep the wire points of the last WIRE_MEMORY_SECONDS, newest first, at most
+        WIRE_MEMORY_SIZE: a strip that catches a wire only in short pieces, or a tower
+        but not its wires, still knows them."""
+        new = np.column_stack([wires, np.full(len(wires), stamp)])
+        w = np.concatenate([new, self._wires])
+        w = w[w[:, 3] >= stamp - WIRE_MEMORY_SECONDS]
+        self._wires = w[:WIRE_MEMORY_SIZE]
 
     def reconfigure(self, cfg: ObstacleDetectorConfig) -> None:
         """Take new parameters for the next message; the ground context is kept when its
@@ -202,8 +224,8 @@ class ObstacleDetector:
 
     def obstacle_step(self, step: GroundStep) -> ObstacleResult:
         """The second half of `process`: obstacle classes, objects and the clearance grid
-        of a cloud whose ground `ground_step` found. Its only state is the towers seen in
-        earlier clouds."""
+        of a cloud whose ground `ground_step` found. Its only state is the towers and wires
+        seen in earlier clouds."""
         from lidar_obstacles.core.obstacles import (ObstacleClasses, classify_obstacles,
                                                     clearance_grid)
 
@@ -217,10 +239,12 @@ class ObstacleDetector:
         lo, hi = column_min(xyz[near, :2]), column_max(xyz[near, :2])
         ob = classify_obstacles(xyz[near], step.ground[near], step.height_above_ground[near],
                                 cfg=cfg.obstacles, rng=self._obstacle_rng,
-                                known_towers=self._known_towers(lo, hi))
+                                known_towers=self._known_towers(lo, hi, step.stamp),
+                                known_wires=self._known_wires(lo, hi, step.stamp))
         if step.far is not None:  # the stray points are noise, in no object
             ob = ObstacleClasses.expand(ob, ~step.far, NOISE)
         self._remember_towers(ob.towers, step.stamp)
+        self._remember_wires(ob.wires, step.stamp)
         t4 = time.perf_counter()
         centre = (np.asarray(step.vehicle_xyz, float)[:2] if step.vehicle_xyz is not None
                   else (lo + hi) / 2.0)
