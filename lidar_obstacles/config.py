@@ -182,7 +182,8 @@ class ContextConfig:
                         min=0.1, max=20.0)
     margin: float = param(10.0, "only ground at least this far inside a message's footprint "
                           "is remembered: at the edges the filter saw one side only (urban "
-                          "ground error 10.9 % with margin 0, 2.46 % with 10 m)", "m",
+                          "ground error 10.9 % with margin 0, 2.46 % with 10 m); a footprint "
+                          "too thin for that keeps its middle half", "m",
                           min=0.0, max=500.0)
 
 

@@ -320,7 +320,7 @@ def test_a_short_piece_continuing_a_remembered_wire_is_wire():
     """At a wire's height a narrow strip catches it in pieces shorter than WIRE_MIN_RUN:
     one that continues a wire of an earlier message is wire, until it is forgotten."""
     from lidar_obstacles.core.obstacles import WIRE_MIN_RUN
-    from lidar_obstacles.core.pipeline import WIRE_MEMORY_SECONDS, GroundStep, ObstacleDetector
+    from lidar_obstacles.core.pipeline import GroundStep, ObstacleDetector
 
     def step(det, x0, x1, stamp):
         xyz, ground, hag = _wire_strip(x0, x1, int(stamp))
@@ -333,4 +333,30 @@ def test_a_short_piece_continuing_a_remembered_wire_is_wire():
     assert step(det, 0.0, 30.0, 0.0) == 1.0
     assert step(det, 32.0, 38.0, 1.0) == 1.0  # 2 m on from the remembered wire
     assert step(det, 70.0, 76.0, 2.0) == 0.0  # far from any wire seen
-    assert step(det, 40.0, 46.0, 1.0 + WIRE_MEMORY_SECONDS + 1.0) == 0.0  # forgotten
+    assert step(det, 40.0, 46.0, 1.0 + det.wires.seconds + 1.0) == 0.0  # forgotten
+
+
+def test_a_small_piece_of_a_remembered_roof_is_building():
+    """A thin strip catches a roof in pieces smaller than `building_min_area`: one that
+    continues a roof of an earlier message is building; alone it is not."""
+    from lidar_obstacles.core.pipeline import GroundStep, ObstacleDetector
+
+    def step(det, x0, x1, y1, stamp):
+        rng = np.random.default_rng(int(stamp * 10))
+        g = np.column_stack([rng.uniform(-20, 40, 6000), rng.uniform(-20, 30, 6000),
+                             rng.normal(0, 0.02, 6000)])
+        gx, gy = np.meshgrid(np.arange(x0, x1, 0.3), np.arange(0, y1, 0.3))
+        roof = np.column_stack([gx.ravel(), gy.ravel(), 8.0 + 0.2 * gx.ravel()])
+        xyz = np.concatenate([g, roof])
+        ground = np.arange(len(xyz)) < len(g)
+        hag = np.where(ground, 0.0, xyz[:, 2]).astype(np.float32)
+        res = det.obstacle_step(GroundStep(xyz, ground, hag, stamp, None, {}))
+        return (res.classes[~ground] == 6).mean()
+
+    area = CFG.obstacles.building_min_area
+    assert 3.0 * 5.0 < area  # the piece, 3 x 5 m, is too small alone
+    assert step(ObstacleDetector(), 20.0, 23.0, 5.0, 0.0) < 0.05
+    det = ObstacleDetector()
+    assert step(det, 0.0, 20.0, 10.0, 0.0) > 0.95
+    assert step(det, 20.0, 23.0, 5.0, 0.1) > 0.95
+    assert step(det, 30.0, 33.0, 5.0, 0.2) < 0.05  # apart from the roof seen

@@ -18,7 +18,8 @@ the main axis and the normal (`local_shape`).
 4. Buildings (6): smooth planar points joined into patches; a patch of at least
    `building_min_area` (in its own plane, so walls count) whose main plane, found by the
    paper's RANSAC with the robust eigenvalue fit, holds most of it is a roof or wall;
-   rough points clinging to it (edges, chimneys) join it.
+   rough points clinging to it (edges, chimneys) join it. A small patch continuing a roof
+   or wall of an earlier message counts with it.
 5. Wires are followed along their own axis through crowns and clutter, where they stop
    looking linear. Poles and other slender things are unclassified (1); the rest is
    vegetation by height above ground (3 < 0.5 m <= 4 <= 2 m < 5).
@@ -56,6 +57,7 @@ BELOW_GROUND_NOISE = 1.5  # m: points this far below the ground surface are nois
 WIRE_GAP = 2.5  # m: a wire point has no other point from this far below it up to 0.5 m
 WIRE_MIN_RUN = 10.0  # m: wire candidates joined into shorter runs are not wires
 WIRE_MEMORY_VOXEL = 0.5  # m: the wires a message passes on are thinned to one point per voxel
+BUILDING_MEMORY_VOXEL = 1.0  # m: ... and its roofs and walls (the patches' own voxel)
 WIRE_LINK = 4.0  # m: voxel edge joining wire candidates into runs (earth wires: 2-3 m gaps)
 WIRE_STEP = 1.5  # m: how far a wire is followed from a known wire point per round
 WIRE_TUBE = 0.15  # m: off a wire's line a followed point may lie (measured: 0.25 took leaves)
@@ -92,7 +94,8 @@ class ObstacleClasses:
     """classes: (N,) uint8 ASPRS; object_id: (N,) int32 (-1 outside objects); towers:
     (T, 3) x, y, radius (m) of the towers recognised, for the next message's known_towers;
     wires: (W, 3) m, the wire points thinned to one per WIRE_MEMORY_VOXEL, for its
-    known_wires."""
+    known_wires; buildings: (B, 3) m, the roof and wall points thinned to one per
+    BUILDING_MEMORY_VOXEL, for its known_buildings."""
 
     classes: np.ndarray
     object_id: np.ndarray
@@ -100,6 +103,7 @@ class ObstacleClasses:
     timings: dict[str, float] = field(default_factory=dict)
     towers: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     wires: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    buildings: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     @staticmethod
     def expand(part: "ObstacleClasses", where: np.ndarray, fill: int) -> "ObstacleClasses":
@@ -109,7 +113,7 @@ class ObstacleClasses:
         object_id = np.full(len(where), -1, np.int32)
         classes[where], object_id[where] = part.classes, part.object_id
         return ObstacleClasses(classes, object_id, part.objects, part.timings, part.towers,
-                               part.wires)
+                               part.wires, part.buildings)
 
 
 def search_tree(points: np.ndarray) -> cKDTree:
@@ -461,29 +465,35 @@ def patch_area(pts: np.ndarray, labels: np.ndarray, cell: float = 1.0) -> np.nda
 
 
 def _buildings(xyz: np.ndarray, cand: np.ndarray, shape: LocalShape, allowed: np.ndarray,
-               cfg: ObstaclesConfig, rng: np.random.Generator) -> np.ndarray:
+               cfg: ObstaclesConfig, rng: np.random.Generator, known: np.ndarray
+               ) -> np.ndarray:
     """(M,) bool over the candidates `cand`: roofs and walls.
 
     Smooth planar points (points within +-t of a plane spread t/sqrt(3), t the plane
-    threshold) are joined into patches on a 1 m voxel grid; a patch covering at least
+    threshold) are joined into patches on a 1 m voxel grid, with the roof and wall points
+    `known` (K, 3) m from earlier messages that they continue; a patch covering at least
     `building_min_area` whose main plane, found by the paper's RANSAC with the robust
-    eigenvalue fit, holds PLANAR_SHARE of it is a roof or wall. Crowns are rough, so their
-    patches stay small. Edges, ridges and chimneys are rough too: the allowed points within
-    BUILDING_REACH of a roof join it."""
+    eigenvalue fit, holds PLANAR_SHARE of this message's part of it is a roof or wall.
+    Crowns are rough, so their patches stay small. Edges, ridges and chimneys are rough
+    too: the allowed points within BUILDING_REACH of a roof join it."""
     is_building = np.zeros(len(cand), bool)
     smooth = np.flatnonzero(allowed & (shape.planarity > BUILDING_PLANARITY)
                             & (shape.roughness < cfg.building_plane_threshold / np.sqrt(3.0)))
     if len(smooth) < 3:
         return is_building
     pts = xyz[cand[smooth]]
+    if len(known):  # what can join them: within a voxel and its neighbours
+        lo, hi = column_min(pts) - 2.0, column_max(pts) + 2.0
+        pts = np.concatenate([pts, known[np.all((known >= lo) & (known <= hi), axis=1)]])
     patches = voxel_components(pts, 1.0)
     area = patch_area(pts, patches)
-    big = np.flatnonzero(area >= cfg.building_min_area)
+    patches = patches[:len(smooth)]
+    counts = np.bincount(patches, minlength=len(area))
+    big = np.flatnonzero((area >= cfg.building_min_area) & (counts >= 3))
     if len(big) == 0:
         return is_building
     order = np.argsort(patches, kind="stable")
     starts = np.searchsorted(patches[order], big)
-    counts = np.bincount(patches)
     for lab, st in zip(big, starts):
         members = smooth[order[st:st + counts[lab]]]
         plane = ransac_plane(xyz[cand[members]], distance_threshold=cfg.building_plane_threshold,
@@ -605,11 +615,13 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
 def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground: np.ndarray, *,
                        cfg: ObstaclesConfig, rng: np.random.Generator | None = None,
                        known_towers: np.ndarray | None = None,
-                       known_wires: np.ndarray | None = None) -> ObstacleClasses:
+                       known_wires: np.ndarray | None = None,
+                       known_buildings: np.ndarray | None = None) -> ObstacleClasses:
     """Classes of every point of (N, 3) float64 xyz (m) given the ground mask (N,) bool and
     the height above ground (N,) float32 m (NaN: unknown, taken as 0). known_towers: (K, 3)
     x, y, radius (m) of towers recognised in earlier messages (ObstacleClasses.towers);
-    known_wires: (W, 3) m, wire points of earlier messages (ObstacleClasses.wires)."""
+    known_wires: (W, 3) m, wire points of earlier messages (ObstacleClasses.wires);
+    known_buildings: (B, 3) m, their roof and wall points (ObstacleClasses.buildings)."""
     t0 = time.perf_counter()
     rng = rng or np.random.default_rng(0)
     n = len(xyz)
@@ -629,8 +641,10 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
     cand = nong[hag[nong] >= cfg.min_height]
     t1 = time.perf_counter()
     objects: list[ObstacleObject] = []
-    towers = wires = np.zeros((0, 3))
+    towers = wires = buildings = np.zeros((0, 3))
     known_wires = np.zeros((0, 3)) if known_wires is None else np.asarray(known_wires, float)
+    known_buildings = (np.zeros((0, 3)) if known_buildings is None
+                       else np.asarray(known_buildings, float))
     if len(cand) >= 3:
         shape = local_shape(xyz[cand], cfg.feature_radius)
         # 2. wires
@@ -654,7 +668,8 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
         tower[rest[is_tower]] = True
         classes[cand[tower]] = TOWER
         # 4. buildings: large planar patches (and what clings to them); poles
-        is_building = _buildings(xyz, cand, shape, ~is_wire & ~tower, cfg, rng)
+        is_building = _buildings(xyz, cand, shape, ~is_wire & ~tower, cfg, rng,
+                                 known_buildings)
         classes[cand[is_building]] = BUILDING
         pole = (kept & (extent < 2.0) & (height > 3.0))[labels] & ~is_tower
         classes[cand[rest[pole & ~is_building[rest]]]] = UNCLASSIFIED
@@ -676,6 +691,9 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
         if is_wire.any():
             w = xyz[cand[is_wire]]
             wires, _ = _voxel_centroids(w, column_min(w), WIRE_MEMORY_VOXEL)
+        if is_building.any():
+            b = xyz[cand[is_building]]
+            buildings, _ = _voxel_centroids(b, column_min(b), BUILDING_MEMORY_VOXEL)
         for mask in (is_building, is_wire):
             ids = cand[mask]
             if len(ids):
@@ -689,7 +707,8 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
     t4 = time.perf_counter()
     return ObstacleClasses(classes, object_id, tuple(objects),
                            {"noise": t1 - t0, "wires": t2 - t1, "objects": t3 - t2,
-                            "summaries": t4 - t3, "total": t4 - t0}, towers, wires)
+                            "summaries": t4 - t3, "total": t4 - t0}, towers, wires,
+                           buildings)
 
 
 def _objects(xyz: np.ndarray, hag: np.ndarray, classes: np.ndarray,

@@ -2,11 +2,11 @@
 
 `ObstacleDetector.process` runs ground filtering (with the rolling ground context of earlier
 messages; `ground_step`), then obstacle classification and the clearance grid
-(`obstacle_step`, which remembers the towers and wires it saw). `DemPipeline.process` finds the
-ground (K-means or the detector's filter) and updates the rolling DEM. Results are values;
-the only long-lived state is the ground context (`StreamingGround`), the towers and wires,
-and the rolling DEM, each held by one explicit object, so the halves can run in different
-processes (`replay`).
+(`obstacle_step`, which remembers the towers, wires and buildings it saw).
+`DemPipeline.process` finds the ground (K-means or the detector's filter) and updates the
+rolling DEM. Results are values; the only long-lived state is the ground context
+(`StreamingGround`), the objects seen (`RecentObjects`) and the rolling DEM, each held by
+one explicit object, so the halves can run in different processes (`replay`).
 """
 from __future__ import annotations
 
@@ -25,12 +25,49 @@ if TYPE_CHECKING:
 
 # The rolling DEM is measured at the check points of the last this many messages.
 CHECK_MESSAGES = 20
-TOWER_MEMORY_SECONDS = 60.0  # s: how long a recognised tower is remembered
-TOWER_MEMORY_SIZE = 256  # towers remembered at most (bounded memory on any flight)
-TOWER_MEMORY_RADIUS = 50.0  # m: remembered towers this far outside a cloud are offered
-WIRE_MEMORY_SECONDS = 30.0  # s: how long wire points are remembered
-WIRE_MEMORY_SIZE = 40000  # wire points remembered at most (0.5 m apart: 20 km of conductor)
-WIRE_MEMORY_RADIUS = 40.0  # m: remembered wire this far outside a cloud is offered (SAG_FAR)
+
+
+class RecentObjects:
+    """What earlier messages recognised, kept for a while: rows whose first two columns are
+    x, y (m), each with the stamp (s) of its message. Newest first, at most `size` rows
+    (bounded memory on any flight), none older than `seconds`; `near` offers the rows
+    within `radius` m of a box."""
+
+    def __init__(self, width: int, seconds: float, size: int, radius: float) -> None:
+        self.rows = np.zeros((0, width))
+        self.stamps = np.zeros(0)
+        self.seconds, self.size, self.radius = seconds, size, radius
+
+    def near(self, lo: np.ndarray, hi: np.ndarray, stamp: float) -> np.ndarray:
+        """(K, width) the rows within `radius` of the box lo..hi (2,) m, not too old."""
+        xy = self.rows[:, :2]
+        keep = (np.all((xy >= lo - self.radius) & (xy <= hi + self.radius), axis=1)
+                & (self.stamps >= stamp - self.seconds))
+        return self.rows[keep]
+
+    def add(self, rows: np.ndarray, stamp: float) -> None:
+        """Remember (R, width) rows of the message stamped `stamp` s; forget the old."""
+        all_rows = np.concatenate([rows, self.rows])
+        stamps = np.concatenate([np.full(len(rows), stamp), self.stamps])
+        keep = np.flatnonzero(stamps >= stamp - self.seconds)[:self.size]
+        self.rows, self.stamps = all_rows[keep], stamps[keep]
+
+
+# A strip that catches only a tower's legs still knows it: x, y, radius (m) of each tower.
+def _tower_memory() -> RecentObjects:
+    return RecentObjects(3, seconds=60.0, size=256, radius=50.0)
+
+
+# A strip that catches a wire only in short pieces, or a tower but not its wires, still
+# knows them: wire points 0.5 m apart (40 000: 20 km of conductor), offered out to SAG_FAR.
+def _wire_memory() -> RecentObjects:
+    return RecentObjects(3, seconds=30.0, size=40000, radius=40.0)
+
+
+# A strip that catches a roof only in small pieces still knows the building: roof and wall
+# points 1 m apart (100 000: ~10 ha of roof), offered as far as a piece may continue them.
+def _building_memory() -> RecentObjects:
+    return RecentObjects(3, seconds=30.0, size=100000, radius=5.0)
 
 
 @dataclass(frozen=True)
@@ -153,41 +190,8 @@ class ObstacleDetector:
         self.ground = StreamingGround(self.cfg)
         self._obstacle_rng = np.random.default_rng(self.cfg.ransac.seed)
         self._feature_rng = np.random.default_rng(self.cfg.features.seed)
-        self._towers = np.zeros((0, 4))  # x, y, radius (m), stamp (s) of towers seen
-        self._wires = np.zeros((0, 4))  # x, y, z (m), stamp (s) of wire points seen
-
-    def _known_towers(self, lo: np.ndarray, hi: np.ndarray, stamp: float) -> np.ndarray:
-        """(K, 3) remembered towers (x, y, radius m) near the box lo..hi, not too old."""
-        t = self._towers
-        near = (np.all((t[:, :2] >= lo - TOWER_MEMORY_RADIUS)
-                       & (t[:, :2] <= hi + TOWER_MEMORY_RADIUS), axis=1)
-                & (t[:, 3] >= stamp - TOWER_MEMORY_SECONDS))
-        return t[near, :3]
-
-    def _remember_towers(self, towers: np.ndarray, stamp: float) -> None:
-        """Keep the towers of the last TOWER_MEMORY_SECONDS, newest first, at most
-        TOWER_MEMORY_SIZE: a strip that catches only a tower's legs still knows it."""
-        new = np.column_stack([towers, np.full(len(towers), stamp)])
-        t = np.concatenate([new, self._towers])
-        t = t[t[:, 3] >= stamp - TOWER_MEMORY_SECONDS]
-        self._towers = t[:TOWER_MEMORY_SIZE]
-
-    def _known_wires(self, lo: np.ndarray, hi: np.ndarray, stamp: float) -> np.ndarray:
-        """(W, 3) remembered wire points (m) near the box lo..hi, not too old."""
-        w = self._wires
-        near = (np.all((w[:, :2] >= lo - WIRE_MEMORY_RADIUS)
-                       & (w[:, :2] <= hi + WIRE_MEMORY_RADIUS), axis=1)
-                & (w[:, 3] >= stamp - WIRE_MEMORY_SECONDS))
-        return w[near, :3]
-
-    def _remember_wires(self, wires: np.ndarray, stamp: float) -> None:
-        """Keep the wire points of the last WIRE_MEMORY_SECONDS, newest first, at most
-        WIRE_MEMORY_SIZE: a strip that catches a wire only in short pieces, or a tower
-        but not its wires, still knows them."""
-        new = np.column_stack([wires, np.full(len(wires), stamp)])
-        w = np.concatenate([new, self._wires])
-        w = w[w[:, 3] >= stamp - WIRE_MEMORY_SECONDS]
-        self._wires = w[:WIRE_MEMORY_SIZE]
+        self.towers, self.wires = _tower_memory(), _wire_memory()
+        self.buildings = _building_memory()
 
     def reconfigure(self, cfg: ObstacleDetectorConfig) -> None:
         """Take new parameters for the next message; the ground context is kept when its
@@ -224,8 +228,8 @@ class ObstacleDetector:
 
     def obstacle_step(self, step: GroundStep) -> ObstacleResult:
         """The second half of `process`: obstacle classes, objects and the clearance grid
-        of a cloud whose ground `ground_step` found. Its only state is the towers and wires
-        seen in earlier clouds."""
+        of a cloud whose ground `ground_step` found. Its only state is the towers, wires and
+        buildings seen in earlier clouds."""
         from lidar_obstacles.core.obstacles import (ObstacleClasses, classify_obstacles,
                                                     clearance_grid)
 
@@ -239,12 +243,14 @@ class ObstacleDetector:
         lo, hi = column_min(xyz[near, :2]), column_max(xyz[near, :2])
         ob = classify_obstacles(xyz[near], step.ground[near], step.height_above_ground[near],
                                 cfg=cfg.obstacles, rng=self._obstacle_rng,
-                                known_towers=self._known_towers(lo, hi, step.stamp),
-                                known_wires=self._known_wires(lo, hi, step.stamp))
+                                known_towers=self.towers.near(lo, hi, step.stamp),
+                                known_wires=self.wires.near(lo, hi, step.stamp),
+                                known_buildings=self.buildings.near(lo, hi, step.stamp))
         if step.far is not None:  # the stray points are noise, in no object
             ob = ObstacleClasses.expand(ob, ~step.far, NOISE)
-        self._remember_towers(ob.towers, step.stamp)
-        self._remember_wires(ob.wires, step.stamp)
+        self.towers.add(ob.towers, step.stamp)
+        self.wires.add(ob.wires, step.stamp)
+        self.buildings.add(ob.buildings, step.stamp)
         t4 = time.perf_counter()
         centre = (np.asarray(step.vehicle_xyz, float)[:2] if step.vehicle_xyz is not None
                   else (lo + hi) / 2.0)
