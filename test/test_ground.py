@@ -168,14 +168,19 @@ def test_context_is_bounded_in_space_and_time():
     assert ctx.points_near(np.array([0.0, 0.0]), np.array([10.0, 10.0]), 9.9) is None
 
 
-def test_context_remembers_only_the_inside_of_a_strip():
+def _remembered_of_a_strip(width: float) -> np.ndarray | None:
+    """The context cells kept of one flat 60 m x `width` strip, margin 10 m."""
     cfg = replace(ObstacleDetectorConfig(), {"context.radius": 50.0, "context.margin": 10.0,
                                              "context.cell": 1.0}).context
     ctx = GroundContext(cfg)
-    gx, gy = np.meshgrid(np.arange(0, 60, 0.5), np.arange(0, 40, 0.5))
+    gx, gy = np.meshgrid(np.arange(0, 60, 0.5), np.arange(0, width, 0.5))
     strip = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
     ctx.update(strip, stamp=0.0, cloud_xy=strip[:, :2])
-    kept = ctx.points_near(np.array([0.0, 0.0]), np.array([60.0, 40.0]), 0.0)
+    return ctx.points_near(np.array([0.0, 0.0]), np.array([60.0, width]), 0.0)
+
+
+def test_context_remembers_only_the_inside_of_a_strip():
+    kept = _remembered_of_a_strip(40.0)
     # 10 m in from every side of a 60 x 40 m strip: x 10..50, y 10..30
     assert kept is not None
     assert kept[:, 0].min() >= 10 - 1 and kept[:, 0].max() <= 50 + 1
@@ -186,13 +191,7 @@ def test_context_remembers_only_the_inside_of_a_strip():
 def test_context_remembers_the_middle_of_a_thin_strip():
     """A survey's 0.1 s slices are ~5 m wide: none of a slice lies 10 m inside it, so
     before, no slice was ever remembered. The middle half of a thin strip is."""
-    cfg = replace(ObstacleDetectorConfig(), {"context.radius": 50.0, "context.margin": 10.0,
-                                             "context.cell": 1.0}).context
-    ctx = GroundContext(cfg)
-    gx, gy = np.meshgrid(np.arange(0, 60, 0.5), np.arange(0, 6, 0.5))
-    strip = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
-    ctx.update(strip, stamp=0.0, cloud_xy=strip[:, :2])
-    kept = ctx.points_near(np.array([0.0, 0.0]), np.array([60.0, 6.0]), 0.0)
+    kept = _remembered_of_a_strip(6.0)
     assert kept is not None  # y 1.5..4.5 of 0..6, x 1.5..58.5
     assert kept[:, 1].min() >= 1.0 and kept[:, 1].max() <= 5.0
     assert kept[:, 0].min() <= 3.0 and kept[:, 0].max() >= 57.0
