@@ -182,9 +182,10 @@ def test_a_tower_seen_before_is_known_from_its_legs():
     assert (c_known.classes[legs] == 15).mean() > 0.8
 
 
-def _three_spans(rng, wire_y: float = 5.0, seen_up_to: float = 99.0):
+def _three_spans(rng, wire_y: float = 5.0, seen_up_to: float = 99.0, high: float = 0.0):
     """Three spans over 360 m between towers at x = -60 and 60 (26 m lattices, conductors at
-    y = +-wire_y hanging 25 m high), the towers seen only below `seen_up_to` m; a 19 m tree
+    y = +-wire_y hanging 25 m high; all `high` m higher), the towers seen only below
+    `seen_up_to` m; a 19 m tree
     stands beside the middle span's wire where it sags lowest, its crown within 2 m of it.
     The wires rise away from the tree on both sides but sag away from the towers."""
     parts, labels = [], []
@@ -197,25 +198,27 @@ def _three_spans(rng, wire_y: float = 5.0, seen_up_to: float = 99.0):
     add(np.column_stack([rng.uniform(-180, 180, (60000, 1)), rng.uniform(-30, 30, (60000, 1)),
                          rng.normal(0, 0.02, (60000, 1))]), 2)
     for tx in (-60.0, 60.0):
-        h = rng.uniform(0, 26, 2000)
-        half = 4.0 * (1 - h / 32)
-        add(np.column_stack([tx + rng.choice([-1, 1], 2000) * half,
-                             rng.choice([-1, 1], 2000) * half, h]), 15)
+        n = int(2000 * (1 + high / 26))
+        h = rng.uniform(0, 26 + high, n)
+        half = 4.0 * (1 - h / (32 + high))
+        add(np.column_stack([tx + rng.choice([-1, 1], n) * half,
+                             rng.choice([-1, 1], n) * half, h]), 15)
         # bracing every 3 m: the lattice is one object at any height
-        level = rng.integers(1, 9, 800) * 3.0
-        edge = 4.0 * (1 - level / 32)
+        level = rng.integers(1, 9 + int(high / 3), 800) * 3.0
+        edge = 4.0 * (1 - level / (32 + high))
         along = rng.uniform(-1, 1, 800) * edge
         side = rng.choice([-1, 1], 800) * edge
         flip = rng.random(800) < 0.5
         add(np.column_stack([tx + np.where(flip, along, side), np.where(flip, side, along),
                              level]), 15)
         add(np.column_stack([np.full(300, tx), rng.uniform(-wire_y - 0.5, wire_y + 0.5, 300),
-                             np.full(300, 25.5)]), 15)  # the arm the conductors hang from
+                             np.full(300, 25.5 + high)]), 15)  # the arm the conductors hang from
     for a in (-180.0, -60.0, 60.0):  # spans between -180..-60, -60..60, 60..180
         s = np.linspace(a, a + 120, 1200)
         mid = a + 60
         for y in (-wire_y, wire_y):
-            add(np.column_stack([s, np.full_like(s, y), 25 - 0.002 * (3600 - (s - mid) ** 2)]), 14)
+            add(np.column_stack([s, np.full_like(s, y),
+                                 25 + high - 0.002 * (3600 - (s - mid) ** 2)]), 14)
     crown = rng.normal(0, 1.0, (4000, 3)) * [2.0, 2.0, 2.0] + [0, -9, 15.5]
     trunk = np.column_stack([rng.normal(0, 0.1, (300, 1)), rng.normal(-9, 0.1, (300, 1)),
                              rng.uniform(0.5, 12, (300, 1))])
@@ -242,6 +245,47 @@ def test_a_tower_seen_only_below_its_arms_carries_the_wires_beside_it():
     assert (c[truth == 15] == 15).mean() > 0.8
     assert (c[truth == 5] == 15).mean() < 0.01
     assert (c[truth == 14] == 14).mean() > 0.95
+
+
+def test_bushes_round_a_towers_foot_are_not_tower_but_its_legs_are():
+    """A thicket 7-12 m from the axis of a 42 m tower, 0.5-3 m high, reaching in to touch
+    its legs (so one object with it): within the tower's column (10 m), but wider than its
+    legs spread (5.6 m at the foot)."""
+    rng = np.random.default_rng(9)
+    xyz, truth = _three_spans(rng, high=16.0)
+    r, a = rng.uniform(7.0, 12.0, 6000), rng.uniform(0, 2 * np.pi, 6000)
+    ring = np.column_stack([-60 + r * np.cos(a), r * np.sin(a), rng.uniform(0.5, 3.0, 6000)])
+    reach_in = np.column_stack([rng.uniform(-54.6, -53.0, 300), rng.uniform(-1, 1, 300),
+                                rng.uniform(0.5, 2.0, 300)])  # touches the leg at (-56, 0)
+    xyz = np.concatenate([xyz, ring, reach_in])
+    truth = np.concatenate([truth, np.full(len(ring) + len(reach_in), 1)])
+    res = classify_obstacles(xyz, truth == 2, xyz[:, 2].astype(np.float32), cfg=CFG.obstacles)
+    c = res.classes
+    legs = (truth == 15) & (xyz[:, 2] > 0.5) & (xyz[:, 2] < 6) & (xyz[:, 0] < 0)
+    assert (c[legs] == 15).mean() > 0.95
+    assert (c[truth == 15] == 15).mean() > 0.8
+    assert (c[len(c) - len(ring) - len(reach_in):][:len(ring)] == 15).mean() < 0.02
+    assert (c[truth == 2] == 15).mean() < 0.002  # the ground under the legs only
+
+
+def test_a_crane_reaching_a_lower_conductor_seen_on_one_side_is_no_tower():
+    """A strip has seen the span on one side only so far: a 31 m mast touches the end of
+    its lower conductor (25 m) while the upper one passes 5 m beside it and 3 m above its
+    top. A tower would carry the highest wire; the crane is no tower. (The towers of the
+    synthetic corridor, each with its span on one side only, still are.)"""
+    rng = np.random.default_rng(10)
+    ground = np.column_stack([rng.uniform(-60, 20, (20000, 1)), rng.uniform(-20, 20, (20000, 1)),
+                              rng.normal(0, 0.02, (20000, 1))])
+    s = np.linspace(-60, 0, 600)
+    lower = np.column_stack([s, np.zeros_like(s), np.full_like(s, 25.0)])
+    upper = np.column_stack([s, np.full_like(s, 5.0), np.full_like(s, 34.0)])
+    mast = np.column_stack([[1.0, 0.0] + rng.uniform(-0.5, 0.5, (800, 2)),
+                            rng.uniform(0.5, 31, 800)])
+    xyz = np.concatenate([ground, lower, upper, mast])
+    truth = np.repeat([2, 14, 14, 26], [len(ground), len(lower), len(upper), len(mast)])
+    res = classify_obstacles(xyz, truth == 2, xyz[:, 2].astype(np.float32), cfg=CFG.obstacles)
+    assert (res.classes[truth == 14] == 14).mean() > 0.95
+    assert (res.classes[truth == 26] == 15).mean() < 0.01 and len(res.towers) == 0
 
 
 def test_isolated_points_match_a_brute_force_count():

@@ -68,7 +68,10 @@ TOWER_PEAK = 5.0  # m: wire this little above a tower's top hangs from its peak
 TOWER_ARM = 4.5  # m: ... or from its arms, this far from the axis (a low flight sees no peak)
 SAG_NEAR, SAG_FAR = 15.0, 40.0  # m: ring around a tower where its wires must hang lower
 SAG_MIN_DROP = 0.3  # m: how much lower (95th percentile of the wire there)
-TOWER_BASE = 0.2  # a tower's legs stand within this share of its height from its axis
+SAG_ONE_SIDE_RISE = 2.5  # m: how much higher, at most, when wire is seen on one side only
+TOWER_BODY = (0.2, 0.35)  # towers: the band of the height (under the arms) whose spread
+TOWER_TAPER = 0.2  # m per m below it, + TOWER_LEG_MARGIN m, bounds the legs' spread
+TOWER_LEG_MARGIN = 1.0  # m
 TOWER_FOOT_REACH = 1.0  # m: ground points this close to a tower's lowest points are its legs
 TOWER_RADIUS = 0.25  # towers: points within this share of the height from the top's axis
 PLANAR_SHARE = 0.4  # buildings: share of a planar patch on its main RANSAC plane
@@ -508,11 +511,12 @@ def _buildings(xyz: np.ndarray, cand: np.ndarray, shape: LocalShape, allowed: np
     return is_building
 
 
-def _wires_sag_away(top_xy: np.ndarray, touching: np.ndarray, wire_xyz: np.ndarray,
-                    wire_xy_tree: cKDTree) -> bool:
+def _wires_sag_away(top_xy: np.ndarray, top_z: float, touching: np.ndarray,
+                    wire_xyz: np.ndarray, wire_xy_tree: cKDTree) -> bool:
     """True when the wires sag away from an object on every side: they hang from it.
 
-    top_xy (2,) is the object's top, touching (T, 3) the wire points next to it. A catenary
+    top_xy (2,) is the object's top, top_z (m) its height, touching (T, 3) the wire points
+    next to it. A catenary
     is highest at its supports, so away from a tower its wires are lower (a 300 m span with
     8 m of sag drops ~4 m in 40 m); at a tree under the line the wires run level or rise
     towards the next tower on at least one side (wire on one side only cannot tell them
@@ -531,23 +535,36 @@ def _wires_sag_away(top_xy: np.ndarray, touching: np.ndarray, wire_xyz: np.ndarr
     z_touch = float(np.percentile(touching[:, 2], 95))
     sides = [s for s in (side, ~side) if s.sum() >= 5]
     if len(sides) < 2:
-        # Wire on one side only: a dead end, or where the data ends. A span rising to a
-        # higher tower need not sag below its low end, so the attachment decides.
-        return True
+        # Wire on one side only: a dead end, where the data ends, or a strip that has seen
+        # the span on one side so far. A span rising to a higher tower need not sag below
+        # its low end, so the attachment decides, unless the top wire there passes well
+        # above both what the object touches and its own top: a tower carries its highest
+        # wire at its peak, while a tree or crane reaching a lower conductor stands under
+        # the higher ones (streamed 07CZ2_14: 3-4 m under, 7 000 points). A tower whose
+        # peak the strip has not seen yet reaches up to its earth wire's height.
+        return all(np.percentile(wire_xyz[far[s], 2], 95)
+                   <= max(z_touch, top_z) + SAG_ONE_SIDE_RISE for s in sides)
     return all(np.percentile(wire_xyz[far[s], 2], 95) <= z_touch - SAG_MIN_DROP
                for s in sides)
 
 
-def _tower_feet(p: np.ndarray, h: np.ndarray, column: np.ndarray, top: np.ndarray,
-                top_h: float) -> np.ndarray:
-    """(F, 3) the lowest points (below 0.3 of the height) of a tower's legs: within
-    TOWER_BASE of its height from the lattice's axis. The axis is taken at mid-height
-    (0.3-0.7 of the height: legs and bracing only), not at the top, where the last metres
-    of an unrecognised wire on one side pull the centre ~1 m aside and cut off the far legs.
-    p (M, 3) m and h (M,) m: the tower object's points; column (M,) bool its column."""
-    mid = column & (h > 0.3 * top_h) & (h < 0.7 * top_h)
-    axis = column_mean(p[mid, :2]) if mid.sum() >= 10 else top  # legs all round: mean
-    return p[(row_norm(p[:, :2] - axis) < TOWER_BASE * top_h) & (h < 0.3 * top_h)]
+def _tower_body(p: np.ndarray, h: np.ndarray, column: np.ndarray, top_h: float
+                ) -> np.ndarray:
+    """(M,) bool: the tower's own points among its `column` (p (M, 3) m, h (M,) m above
+    ground, top_h its height). Below the body's band TOWER_BODY (under the arms, above
+    the clutter round its foot) a lattice's legs spread at most TOWER_TAPER m per m from
+    the band's own spread (75th percentile of the distance to the band's axis) plus
+    TOWER_LEG_MARGIN: bushes and sheds round its foot, which touch it and so join its
+    object, are not tower (the AHN corridor towers: 1 700 such points beside 1 200 tower
+    points). A column without that band (a strip holding only its legs) is kept whole."""
+    lo_h, hi_h = TOWER_BODY[0] * top_h, TOWER_BODY[1] * top_h
+    band = column & (h >= lo_h) & (h < hi_h)
+    if band.sum() < 10:
+        return column
+    r = row_norm(p[:, :2] - column_mean(p[band, :2]))
+    reach = (np.percentile(r[band], 75) + TOWER_LEG_MARGIN
+             + TOWER_TAPER * np.maximum(lo_h - h, 0.0))
+    return column & ((h >= lo_h) | (r <= reach))
 
 
 def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.ndarray,
@@ -580,8 +597,9 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
             continue  # the top's centre lies off every point: a ring of tall things, no mast
         if len(known) and (np.linalg.norm(known[:, :2] - top, axis=1) < known[:, 2]).any():
             # seen whole in an earlier strip: this strip may hold only its legs
-            is_tower[local[column]] = True
-            feet.append(_tower_feet(p, h, column, top, top_h))
+            body = _tower_body(p, h, column, top_h)
+            is_tower[local[body]] = True
+            feet.append(p[body & (h < 0.3 * top_h)])
             continue
         if wire_tree is None:
             continue
@@ -600,9 +618,11 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
         wire_above = bool(len(over_ids)) and bool(
             (wire_xyz[over_ids, 2] > col_top + TOWER_PEAK).any())
         if (len(touching) and not wire_above
-                and _wires_sag_away(top, wire_xyz[touching], wire_xyz, wire_xy_tree)):
-            is_tower[local[column]] = True
-            feet.append(_tower_feet(p, h, column, top, top_h))
+                and _wires_sag_away(top, col_top, wire_xyz[touching], wire_xyz,
+                                    wire_xy_tree)):
+            body = _tower_body(p, h, column, top_h)
+            is_tower[local[body]] = True
+            feet.append(p[body & (h < 0.3 * top_h)])
             found.append((float(top[0]), float(top[1]), TOWER_RADIUS * top_h))
     # pieces of one tower (arms cut off by the wires) are one tower: the widest stands
     towers: list[tuple[float, float, float]] = []
