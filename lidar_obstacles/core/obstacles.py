@@ -568,10 +568,10 @@ def _tower_body(p: np.ndarray, h: np.ndarray, column: np.ndarray, top_h: float
 
 
 def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.ndarray,
-            count: np.ndarray, tall: np.ndarray, wire_xyz: np.ndarray,
+            tall: np.ndarray, wire_xyz: np.ndarray,
             known: np.ndarray) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
-    """Which of the (M,) points `members` (indices into xyz, grouped into objects by `labels`
-    with `count` points each) are towers, checking the `tall` objects against the wires
+    """Which of the (M,) points `members` (indices into xyz, grouped into objects by
+    `labels`) are towers, checking the `tall` objects against the wires
     (W, 3) or the towers already `known` (K, 3: x, y, radius m) from earlier messages.
     Returns the (M,) bool, the feet (F, 3) of each tower, and the towers (T, 3) found."""
     is_tower = np.zeros(len(members), bool)
@@ -581,10 +581,8 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
         return is_tower, feet, np.zeros((0, 3))
     wire_tree = cKDTree(wire_xyz) if len(wire_xyz) else None
     wire_xy_tree = cKDTree(wire_xyz[:, :2]) if len(wire_xyz) else None
-    order = np.argsort(labels, kind="stable")
-    starts = np.searchsorted(labels[order], tall)
-    for lab, st in zip(tall, starts):
-        local = order[st:st + count[lab]]
+    for lab in tall:
+        local = np.flatnonzero(labels == lab)  # a few tall objects: cheaper than sorting
         p, h = xyz[members[local]], hag[members[local]]
         top_h = float(h.max())
         # A tower carries wires: they end at its arms, at or below its top (a tree under
@@ -611,12 +609,13 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
         peak = np.asarray(wire_xy_tree.query_ball_point(top, r=TOWER_ARM), np.int64)
         peak = peak[(wire_xyz[peak, 2] >= col_top) & (wire_xyz[peak, 2] <= col_top + TOWER_PEAK)]
         touching = np.unique(np.concatenate([near[np.isfinite(dist)], peak]))
-        over = wire_xy_tree.query_ball_point(p[column & (h > 0.5 * top_h), :2],
-                                             r=TOWER_WIRE_GAP, return_sorted=False)
-        over_ids = np.unique(np.concatenate([np.asarray(o, np.int64) for o in over]
-                                            or [np.zeros(0, np.int64)]))
-        wire_above = bool(len(over_ids)) and bool(
-            (wire_xyz[over_ids, 2] > col_top + TOWER_PEAK).any())
+        # Wire higher than that within TOWER_WIRE_GAP (horizontally) of its upper half
+        # passes over it. Only the few wire points that high are searched for: a forest's
+        # tall component listing the wires near each of its points cost ~9 ms a message.
+        high_wire = wire_xyz[wire_xyz[:, 2] > col_top + TOWER_PEAK, :2]
+        upper = p[column & (h > 0.5 * top_h), :2]
+        wire_above = bool(len(high_wire)) and bool(len(upper)) and bool(np.isfinite(
+            cKDTree(upper).query(high_wire, distance_upper_bound=TOWER_WIRE_GAP)[0]).any())
         if (len(touching) and not wire_above
                 and _wires_sag_away(top, col_top, wire_xyz[touching], wire_xyz,
                                     wire_xy_tree)):
@@ -681,7 +680,7 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
         object_id[cand[rest[kept[labels]]]] = labels[kept[labels]]
         next_id = int(labels.max()) + 1 if len(labels) else 0
         is_tower, tower_feet, towers = _towers(
-            xyz, hag, cand[rest], labels, count,
+            xyz, hag, cand[rest], labels,
             np.flatnonzero(kept & (height > cfg.tower_min_height)), wire_xyz,
             np.zeros((0, 3)) if known_towers is None else np.asarray(known_towers, float))
         tower = np.zeros(len(cand), bool)
