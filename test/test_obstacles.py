@@ -236,10 +236,10 @@ def test_a_tall_tree_under_a_span_is_no_tower_but_the_towers_are():
 
 
 def test_a_tower_seen_only_below_its_arms_carries_the_wires_beside_it():
-    """A flight below the tops sees a tower up to 21 m and its conductors 4 m aside and 4 m
-    higher, hanging from arms it does not see (the simulator's corridor): no wire point is
-    within 3 m of the tower, but the wires hang from it."""
-    xyz, truth = _three_spans(np.random.default_rng(7), wire_y=4.0, seen_up_to=21.0)
+    """A flight below the tops sees a tower up to 21 m and its conductors 7 m aside and 4 m
+    higher, hanging from arms it does not see (the simulator's corridor, whose arms reach
+    5-7 m): no wire point is within 3 m of the tower, but the wires hang from it."""
+    xyz, truth = _three_spans(np.random.default_rng(7), wire_y=7.0, seen_up_to=21.0)
     res = classify_obstacles(xyz, truth == 2, xyz[:, 2].astype(np.float32), cfg=CFG.obstacles)
     c = res.classes
     assert (c[truth == 15] == 15).mean() > 0.8
@@ -270,15 +270,16 @@ def test_bushes_round_a_towers_foot_are_not_tower_but_its_legs_are():
 
 def test_a_crane_reaching_a_lower_conductor_seen_on_one_side_is_no_tower():
     """A strip has seen the span on one side only so far: a 31 m mast touches the end of
-    its lower conductor (25 m) while the upper one passes 5 m beside it and 3 m above its
-    top. A tower would carry the highest wire; the crane is no tower. (The towers of the
-    synthetic corridor, each with its span on one side only, still are.)"""
+    its lower conductor (25 m) while the upper one passes 9 m beside it (beyond the reach
+    of a tower's arms) and 3 m above its top. A tower would carry the highest wire; the
+    crane is no tower. (The towers of the synthetic corridor, each with its span on one
+    side only, still are.)"""
     rng = np.random.default_rng(10)
     ground = np.column_stack([rng.uniform(-60, 20, (20000, 1)), rng.uniform(-20, 20, (20000, 1)),
                               rng.normal(0, 0.02, (20000, 1))])
     s = np.linspace(-60, 0, 600)
     lower = np.column_stack([s, np.zeros_like(s), np.full_like(s, 25.0)])
-    upper = np.column_stack([s, np.full_like(s, 5.0), np.full_like(s, 34.0)])
+    upper = np.column_stack([s, np.full_like(s, 9.0), np.full_like(s, 34.0)])
     mast = np.column_stack([[1.0, 0.0] + rng.uniform(-0.5, 0.5, (800, 2)),
                             rng.uniform(0.5, 31, 800)])
     xyz = np.concatenate([ground, lower, upper, mast])
