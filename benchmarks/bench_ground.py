@@ -16,9 +16,7 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
-import os
 import time
 from pathlib import Path
 
@@ -31,6 +29,7 @@ from lidar_obstacles.core.pipeline import ObstacleDetector
 from lidar_obstacles.core.ransac import ransac_plane
 from lidar_obstacles.evaluate import ISPRS_SAMPLES
 from lidar_obstacles.io.las import read_las
+from common import quiet_stdout  # (benchmarks/ is on the path)
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -66,19 +65,6 @@ def best_of_paired(fn, anchor_fn, repeats: int) -> tuple[float, object, float]:
 def ground_only(xyz: np.ndarray) -> np.ndarray:
     return classify_ground(xyz, tiling=CFG.tiling, ground=CFG.ground, tin=CFG.tin,
                            ransac=CFG.ransac, rng=np.random.default_rng(0)).ground
-
-
-@contextlib.contextmanager
-def quiet_stdout():
-    """CSF prints its progress from C++ to file descriptor 1; keep the table clean."""
-    saved = os.dup(1)
-    with open(os.devnull, "w") as null:
-        os.dup2(null.fileno(), 1)
-        try:
-            yield
-        finally:
-            os.dup2(saved, 1)
-            os.close(saved)
 
 
 def pysmrf_ground(xyz: np.ndarray) -> np.ndarray:

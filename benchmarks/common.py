@@ -3,6 +3,8 @@ scripts, so this folder is on their import path)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 
 
 def table(rows: list[dict], cols: list[str]) -> str:
@@ -23,3 +25,17 @@ def quick_args(doc: str | None, quick_help: str) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=(doc or "").splitlines()[0])
     parser.add_argument("--quick", action="store_true", help=quick_help)
     return parser.parse_args()
+
+
+@contextlib.contextmanager
+def quiet_stdout():
+    """Anchors that print from C++ to file descriptor 1 (CSF's progress, Patchwork++'s
+    greeting): keep the tables clean."""
+    saved = os.dup(1)
+    with open(os.devnull, "w") as null:
+        os.dup2(null.fileno(), 1)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 1)
+            os.close(saved)
