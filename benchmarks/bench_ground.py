@@ -251,8 +251,9 @@ def main() -> None:
 
     files = ["ahn-corridor/07CZ2_14.laz", "ahn-corridor/12AN2_20.laz", "ahn4/ahn_2496_9727.laz"]
     print("\n| file | ground kappa | wire recall | wire precision | tower recall | tower "
-          "precision | building recall | building precision | wire+tower in ground % |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "precision | building recall | building precision | wire+tower in ground % | 6x6 blocks "
+          "kappa > 0.8 |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for f in files[:1] if args.quick else files:
         las = read_las(DATA / f)
         xyz, ref = las.xyz, np.asarray(las.points["classification"])
@@ -266,13 +267,17 @@ def main() -> None:
             return "-" if v is None else f"{v:.3f}"
 
         unsafe = m["safety"]["obstacle_as_ground"]
+        blk = m["blocks"]
         print(f"| {f} | {fmt(m['ground_object']['kappa'])} | "
               f"{fmt(pc['wire']['producers_accuracy'])} | {fmt(pc['wire']['users_accuracy'])} | "
               f"{fmt(pc['tower']['producers_accuracy'])} | {fmt(pc['tower']['users_accuracy'])} | "
               f"{fmt(pc['building']['producers_accuracy'])} | "
               f"{fmt(pc['building']['users_accuracy'])} | "
-              f"{'-' if unsafe is None else f'{100 * unsafe:.2f}'} |")
+              f"{'-' if unsafe is None else f'{100 * unsafe:.2f}'} | "
+              f"{100 * (blk['share_kappa_gt_0_8'] or 0):.0f} % of {blk['n_eligible']} |")
         out[f] = {"ground_kappa": m["ground_object"]["kappa"], "per_class": pc,
+                  "blocks_eligible": blk["n_eligible"],
+                  "blocks_share_kappa_gt_0_8": blk["share_kappa_gt_0_8"],
                   "safety": m["safety"], "seconds": dt}
     print("\nTargets: ISPRS total error <= 4.0 %, kappa >= 0.88, ground filter >= 20 x pysmrf; "
           "corridor wire recall >= 0.98 / precision >= 0.90, tower recall >= 0.95, 14/15 in "
