@@ -1,0 +1,101 @@
+"""Raised islands in the hybrid ground filter (_raised_islands): on dense scans a roof that
+a strip caught in its corner, which no window of the opening can cut off, leaves the
+ground; stray low points do not take the ground with them; terraces and a quarry stay."""
+from __future__ import annotations
+
+import numpy as np
+
+from lidar_obstacles.core.ground import HybridSettings, morphological_ground
+
+DENSITY = 8.0  # points per m^2, a UAV or AHN scan
+
+
+def _flat(rng: np.random.Generator, lo: tuple[float, float], hi: tuple[float, float]
+          ) -> np.ndarray:
+    """(N, 3) flat ground at z = 0 (+-0.03 m) over the box lo..hi (m)."""
+    n = int((hi[0] - lo[0]) * (hi[1] - lo[1]) * DENSITY)
+    xy = rng.uniform(lo, hi, (n, 2))
+    return np.column_stack([xy, rng.normal(0.0, 0.03, n)])
+
+
+def _roof_in_the_corner(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) centred points of a 30 x 80 m strip whose lower right corner is a flat roof,
+    25 x 20 m and 8 m up, with its 4 m shadow beside it; (N,) bool roof."""
+    rng = np.random.default_rng(seed)
+    pts = _flat(rng, (0.0, 0.0), (30.0, 80.0))
+    roof = (pts[:, 0] > 5.0) & (pts[:, 1] < 20.0)
+    shadow = (pts[:, 0] > 1.0) & (pts[:, 1] < 20.0) & ~roof
+    pts[roof, 2] += 8.0
+    pts, roof = pts[~shadow], roof[~shadow]
+    return pts - pts.mean(axis=0), roof
+
+
+def test_a_roof_in_a_strips_corner_is_no_ground():
+    pts, roof = _roof_in_the_corner()
+    ground, height = morphological_ground(pts, HybridSettings())
+    assert not ground[roof].any()
+    assert ground[~roof].mean() > 0.99
+    # Its height above ground is the building's, not 0 (the clearance grid reads it).
+    assert np.median(pts[roof, 2] - height[roof]) > 7.0
+    # Without the test the roof is ground: the opening's windows cut at the strip's edges
+    # never hold ground on every side of it.
+    plain, _ = morphological_ground(pts, HybridSettings(island_rise=0))
+    assert plain[roof].mean() > 0.9
+
+
+def _strip_with_low_points(where: str) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) centred points of a flat 30 x 40 m strip with two low points 4-4.6 m down
+    that shield each other from the blunder test; (N,) bool low. where: "edge" (two
+    cells apart on the strip's edge, an empty row between them and the ground) or
+    "inside" (neighbouring cells in the middle)."""
+    rng = np.random.default_rng(1)
+    if where == "edge":
+        pts = _flat(rng, (0.0, 2.0), (30.0, 42.0))
+        low = np.array([[10.2, 0.3, -4.0], [12.4, 0.4, -4.6]])
+    else:
+        pts = _flat(rng, (0.0, 0.0), (30.0, 40.0))
+        low = np.array([[15.3, 20.5, -4.0], [16.4, 20.5, -4.3]])
+    pts = np.concatenate([pts, low])
+    is_low = np.zeros(len(pts), bool)
+    is_low[-2:] = True
+    return pts - pts.mean(axis=0), is_low
+
+
+def test_stray_low_points_do_not_raise_the_ground_into_an_island():
+    for where, unguarded in (("edge", {"island_min_cells": 1, "island_pit_share": 2.0}),
+                             ("inside", {"island_pit_share": 2.0})):
+        pts, low = _strip_with_low_points(where)
+        ground, _ = morphological_ground(pts, HybridSettings())
+        assert ground[~low].mean() > 0.99, where
+        # Counted as lower ground, they would make the whole strip one raised island.
+        bare, _ = morphological_ground(pts, HybridSettings(**unguarded))
+        assert bare[~low].mean() < 0.1, where
+
+
+def test_terraces_and_a_quarry_stay_ground():
+    rng = np.random.default_rng(2)
+    # Three terraces stepping up 3 m each at vertical walls: each has the next one above.
+    pts = _flat(rng, (0.0, 0.0), (45.0, 60.0))
+    pts[:, 2] += 3.0 * np.floor(pts[:, 0] / 15.0)
+    ground, _ = morphological_ground(pts - pts.mean(axis=0), HybridSettings())
+    assert ground.mean() > 0.99
+    # A quarry 20 x 20 m and 5 m deep in 80 x 80 m of land: the land is raised above the
+    # floor all round, but it is wider than any roof (island_extent).
+    pts = _flat(rng, (0.0, 0.0), (80.0, 80.0))
+    floor = (np.abs(pts[:, 0] - 40.0) < 10.0) & (np.abs(pts[:, 1] - 40.0) < 10.0)
+    pts[floor, 2] -= 5.0
+    ground, _ = morphological_ground(pts - pts.mean(axis=0), HybridSettings())
+    assert ground[~floor].mean() > 0.99
+    assert ground[floor].mean() > 0.95
+
+
+def test_no_island_test_on_sparse_scans():
+    rng = np.random.default_rng(3)
+    pts, roof = _roof_in_the_corner()
+    keep = rng.random(len(pts)) < 0.5 / DENSITY  # 0.5 points per m^2
+    on, _ = morphological_ground(pts[keep], HybridSettings())
+    off, _ = morphological_ground(pts[keep], HybridSettings(island_rise=0))
+    assert np.array_equal(on, off)
+    # So the corner roof stays ground there (a known limit): most 1 m cells are empty,
+    # and pieces of ground do not connect.
+    assert on[roof[keep]].mean() > 0.5
