@@ -1,6 +1,7 @@
-"""Raised islands in the hybrid ground filter (_raised_islands): on dense scans a roof that
-a strip caught in its corner, which no window of the opening can cut off, leaves the
-ground; stray low points do not take the ground with them; terraces and a quarry stay."""
+"""Raised islands and pits in the hybrid ground filter (_islands_and_pits): on dense scans
+a roof that a strip caught in its corner, which no window of the opening can cut off,
+leaves the ground; stray low points do not take the ground with them, and leave it
+themselves when ground surrounds them; terraces and a quarry stay."""
 from __future__ import annotations
 
 import numpy as np
@@ -67,6 +68,8 @@ def test_stray_low_points_do_not_raise_the_ground_into_an_island():
         pts, low = _strip_with_low_points(where)
         ground, _ = morphological_ground(pts, HybridSettings())
         assert ground[~low].mean() > 0.99, where
+        if where == "inside":  # a pit: ground all round it
+            assert not ground[low].any()
         # Counted as lower ground, they would make the whole strip one raised island.
         bare, _ = morphological_ground(pts, HybridSettings(**unguarded))
         assert bare[~low].mean() < 0.1, where
