@@ -7,7 +7,10 @@
   (isprs_samp11_blocks.png), the classes of a power-line corridor tile
   (corridor_classes.png), and the error of samp11's DEM from the detected ground
   against the DEM of the reference ground (isprs_samp11_dem_error.png). They are stored
-  with a 256-colour palette: a quarter of the size, no visible difference.
+  with a 256-colour palette: a quarter of the size, no visible difference;
+- urban_roof_islands.png: one message of the simulator's urban flight (seed 1), whose
+  roofs at the strip's edges the opening alone takes for ground, and the raised-island
+  test (HybridSettings.island_rise) takes back out.
 
     .venv/bin/python docs/figures.py
 """
@@ -26,6 +29,8 @@ from PIL import Image  # noqa: E402
 
 from lidar_obstacles.config import FeaturesConfig, SimplifyConfig  # noqa: E402
 from lidar_obstacles.core.features import gaussian_map_features  # noqa: E402
+from lidar_obstacles.core.ground import HybridSettings, morphological_ground  # noqa: E402
+from lidar_obstacles.core.simulate import SimSettings, simulate_flight  # noqa: E402
 from lidar_obstacles.core.simplify import simplify  # noqa: E402
 from lidar_obstacles.evaluate import evaluate  # noqa: E402
 from lidar_obstacles.io.las import read_las  # noqa: E402
@@ -55,8 +60,44 @@ def report_pictures() -> None:
                 print(HERE / name)
 
 
+def save_quantized(fig: plt.Figure, name: str) -> None:
+    """Save a figure here with a 256-colour palette."""
+    with tempfile.TemporaryDirectory() as tmp:
+        fig.savefig(Path(tmp) / name, dpi=110)
+        with Image.open(Path(tmp) / name) as im:
+            im.convert("RGB").quantize(256).save(HERE / name, optimize=True)
+    print(HERE / name)
+
+
+def island_picture(message: int = 94) -> None:
+    """One urban message filtered alone, without and with the raised-island test."""
+    frames = simulate_flight(SimSettings(scene="urban", seed=1, duration=(message + 1) / 10,
+                                         frame="map"))
+    points = list(frames)[message].points
+    xyz = np.column_stack([points["x"], points["y"], points["z"]]).astype(np.float64)
+    building = points["classification"] == 6
+    fig, axes = plt.subplots(1, 2, figsize=(10, 7.5), constrained_layout=True)
+    for ax, (settings, label) in zip(axes, [(HybridSettings(island_rise=0.0), "opening alone"),
+                                            (HybridSettings(), "with the island test")]):
+        ground, _ = morphological_ground(xyz - xyz.mean(axis=0), settings)
+        for mask, colour, name in [(ground & ~building, "#4c9a2a", "ground"),
+                                   (~ground & ~building, "0.6", "other objects"),
+                                   (building & ~ground, "#f0a030", "building"),
+                                   (building & ground, "#d62728", "building taken for ground")]:
+            ax.scatter(xyz[mask, 0], xyz[mask, 1], s=0.4, c=colour, lw=0,
+                       label=f"{name}: {mask.sum():,}")
+        ax.set_title(f"{label}: {100 * ground[building].mean():.0f} % of the roof "
+                     f"points in ground", fontsize=10)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (m)")
+        ax.legend(loc="upper left", fontsize=8, markerscale=12, framealpha=0.9)
+    axes[0].set_ylabel("y (m)")
+    save_quantized(fig, "urban_roof_islands.png")
+
+
 def main() -> None:
     report_pictures()
+    island_picture()
     las = read_las(DATA / "ahn4" / "ahn_2496_9727.laz")
     xyz, pts = las.xyz, las.points
     simple = simplify(xyz, cfg=SimplifyConfig(), return_number=pts["return_number"],
