@@ -273,3 +273,29 @@ def test_default_interpolator_not_worse_than_tin_and_idw_on_noisy_terrain():
             return np.sqrt(np.mean((p[ok] - terrain(xy[test][ok])) ** 2))
 
         assert rmse(default) <= min(rmse("tin"), rmse("idw"))
+
+
+def test_far_queries_share_neighbourhoods_near_ones_do_not(monkeypatch):
+    """A grid's margin beyond the samples (a rolling DEM's fill_distance) is solved in
+    blocks that widen with the distance from the samples; near them nothing changes."""
+    import lidar_obstacles.core.interpolate as interp
+
+    xy = _samples(2000, seed=5)
+    z = paraboloid(xy)
+    near = _queries(5.0, 45.0, 1.0)
+    far = _queries(-25.0, 75.0, 1.0)
+    far = far[(np.abs(far - 25.0) > 27.0).any(axis=1)]  # 2-25 m beyond the samples
+    blocks = interp._blocks(xy, far, 16)
+    assert len(blocks.centre) < len(far) / 3
+    cfg = KrigingConfig()
+    both = interpolate("kriging", xy, z, np.concatenate([near, far]), kriging_cfg=cfg)
+    alone = interpolate("kriging", xy, z, near, kriging_cfg=cfg)
+    np.testing.assert_allclose(both[:len(near)], alone, rtol=0, atol=1e-9)
+    monkeypatch.setattr(interp, "_MAX_BLOCK_LEVEL", 0)  # one block per sample spacing
+    each = interpolate("kriging", xy, z, far, kriging_cfg=cfg)
+    # Out there both extrapolate the paraboloid poorly, and as poorly as each other.
+    truth = paraboloid(far)
+    rmse_blocks = np.sqrt(np.mean((both[len(near):] - truth) ** 2))
+    rmse_each = np.sqrt(np.mean((each - truth) ** 2))
+    assert rmse_blocks < 1.01 * rmse_each
+    assert np.mean(np.abs(both[len(near):] - each)) < 0.05 * rmse_each
