@@ -1,7 +1,8 @@
 """Raised islands and pits in the hybrid ground filter (_islands_and_pits): on dense scans
 a roof that a strip caught in its corner, which no window of the opening can cut off,
 leaves the ground; stray low points do not take the ground with them, and leave it
-themselves when ground surrounds them; terraces and a quarry stay."""
+themselves when ground surrounds them; lone low echoes beyond a strip's edge leave it;
+terraces and a quarry stay."""
 from __future__ import annotations
 
 import numpy as np
@@ -102,3 +103,28 @@ def test_no_island_test_on_sparse_scans():
     # So the corner roof stays ground there (a known limit): most 1 m cells are empty,
     # and pieces of ground do not connect.
     assert on[roof[keep]].mean() > 0.5
+
+
+def test_lone_low_echoes_beyond_a_strips_edge_leave_the_ground():
+    """A low noise echo at a strip's far edge lies beyond the last scan line, with nothing
+    around it for the low-blunder test to judge it on: it is a blunder when it lies more
+    than low_outlier plus lone_slope times the distance below the nearest cells; a lone
+    point that follows the terrain's own fall stays."""
+    rng = np.random.default_rng(4)
+    pts = _flat(rng, (0.0, 0.0), (30.0, 40.0))
+    pts[:, 2] += 0.2 * pts[:, 1]  # the land falls towards the edge at y = 0
+    echoes = np.array([[2.3, -5.2, -6.0], [23.6, -7.4, -9.5], [28.1, -4.6, -5.6]])
+    terrain = np.array([[13.2, -6.1, -1.3]])  # 6 m out, as low as the slope goes on
+    pts = np.concatenate([pts, echoes, terrain])
+    pts -= pts.mean(axis=0)
+    is_echo = np.zeros(len(pts), bool)
+    is_echo[-4:-1] = True
+    ground, height = morphological_ground(pts, HybridSettings())
+    assert not ground[is_echo].any()
+    assert ground[-1]
+    assert ground[~is_echo].mean() > 0.99
+    # The surface is not dragged down towards them: the echoes are metres below it.
+    assert (pts[is_echo, 2] - height[is_echo] < -3.0).all()
+    # Without the test they are ground (nothing within the blunder or pit windows).
+    plain, _ = morphological_ground(pts, HybridSettings(lone_reach=0))
+    assert plain[is_echo].all()
