@@ -268,6 +268,28 @@ def test_bushes_round_a_towers_foot_are_not_tower_but_its_legs_are():
     assert (c[truth == 2] == 15).mean() < 0.002  # the ground under the legs only
 
 
+def test_a_shrub_inside_a_towers_legs_is_not_tower():
+    """A dense shrub 0.5-4 m high between the legs of the 42 m tower at x = -60, touching one
+    (one object with it) and within the legs' spread: it fills space where the legs are a
+    few thin members, so it is not tower, nor is the ground under it (07CZ2_14's tower)."""
+    rng = np.random.default_rng(10)
+    xyz, truth = _three_spans(rng, high=16.0)
+    shrub = rng.normal(0, 1.0, (4000, 3)) * [0.8, 0.8, 0.9] + [-57.5, 2.5, 2.2]
+    shrub = shrub[shrub[:, 2] > 0.5]
+    xyz = np.concatenate([xyz, shrub])
+    truth = np.concatenate([truth, np.full(len(shrub), 4)])
+    res = classify_obstacles(xyz, truth == 2, xyz[:, 2].astype(np.float32), cfg=CFG.obstacles)
+    c = res.classes
+    assert (c[truth == 4] == 15).mean() < 0.05
+    # the legs are tower, but for the stretch of one inside the shrub
+    off_shrub = np.hypot(xyz[:, 0] + 57.5, xyz[:, 1] - 2.5)
+    legs = (truth == 15) & (xyz[:, 2] > 0.5) & (xyz[:, 2] < 6) & (xyz[:, 0] < 0)
+    assert (c[legs & (off_shrub > 3.0)] == 15).mean() > 0.95
+    under = (truth == 2) & (off_shrub < 1.2)
+    assert under.sum() > 5 and (c[under] == 15).mean() < 0.05
+    assert (c[truth == 14] == 14).mean() > 0.95
+
+
 def test_a_crane_reaching_a_lower_conductor_seen_on_one_side_is_no_tower():
     """A strip has seen the span on one side only so far: a 31 m mast touches the end of
     its lower conductor (25 m) while the upper one passes 9 m beside it (beyond the reach

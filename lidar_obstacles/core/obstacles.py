@@ -73,6 +73,8 @@ TOWER_BODY = (0.2, 0.35)  # towers: the band of the height (under the arms) whos
 TOWER_TAPER = 0.2  # m per m below it, + TOWER_LEG_MARGIN m, bounds the legs' spread
 TOWER_LEG_MARGIN = 1.0  # m
 TOWER_FOOT_REACH = 1.0  # m: ground points this close to a tower's lowest points are its legs
+TOWER_LEG_NEIGHBOURHOOD = 1.5  # m: ball (the objects' link) in which a leg point's neighbours
+TOWER_LEG_CROWDING = 2.0  # ... number at most this many times the band's (90th percentile)
 TOWER_RADIUS = 0.25  # towers: points within this share of the height from the top's axis
 PLANAR_SHARE = 0.4  # buildings: share of a planar patch on its main RANSAC plane
 BUILDING_PLANARITY = 0.5  # (l2 - l3) / l1 of a roof or wall neighbourhood
@@ -556,7 +558,13 @@ def _tower_body(p: np.ndarray, h: np.ndarray, column: np.ndarray, top_h: float
     the band's own spread (75th percentile of the distance to the band's axis) plus
     TOWER_LEG_MARGIN: bushes and sheds round its foot, which touch it and so join its
     object, are not tower (the AHN corridor towers: 1 700 such points beside 1 200 tower
-    points). A column without that band (a strip holding only its legs) is kept whole."""
+    points). Within that spread the legs are still a few thin members, as the band is: a
+    point with more than TOWER_LEG_CROWDING times the band's neighbours within
+    TOWER_LEG_NEIGHBOURHOOD (its 90th percentile, so the scan's density cancels out) lies
+    in something that fills space, foliage or a footing block (07CZ2_14: a 6 m shrub under
+    one side of a tower whose lattice the scan shows only from 6 m up, 380 points inside
+    the spread; 12AN2_20: the legs' concrete blocks 0.5-1 m high). A column without that
+    band (a strip holding only its legs) is kept whole."""
     lo_h, hi_h = TOWER_BODY[0] * top_h, TOWER_BODY[1] * top_h
     band = column & (h >= lo_h) & (h < hi_h)
     if band.sum() < 10:
@@ -564,7 +572,37 @@ def _tower_body(p: np.ndarray, h: np.ndarray, column: np.ndarray, top_h: float
     r = row_norm(p[:, :2] - column_mean(p[band, :2]))
     reach = (np.percentile(r[band], 75) + TOWER_LEG_MARGIN
              + TOWER_TAPER * np.maximum(lo_h - h, 0.0))
-    return column & ((h >= lo_h) | (r <= reach))
+    legs = np.flatnonzero(column & (h < lo_h) & (r <= reach))
+    if len(legs):
+        tree = search_tree(p)  # the whole object: a shrub is crowded by its parts outside
+        crowd = tree.query_ball_point(p[legs], TOWER_LEG_NEIGHBOURHOOD, return_length=True)
+        own = tree.query_ball_point(p[band], TOWER_LEG_NEIGHBOURHOOD, return_length=True)
+        legs = legs[crowd <= TOWER_LEG_CROWDING * np.percentile(own, 90)]
+    body = column & (h >= lo_h)
+    body[legs] = True
+    return body
+
+
+def _tower_feet(p: np.ndarray, h: np.ndarray, body: np.ndarray, top_h: float
+                ) -> np.ndarray:
+    """(F, 3) m: the tower's points (p (M, 3) m, h (M,) m above ground, `body` (M,) bool)
+    below 0.3 top_h that its legs lead down to from the band: through body points in
+    touching voxels of edge TOWER_FOOT_REACH / 2 (0.5 m apart always join, 1.7 m never),
+    steps no longer than the foot step's own reach. A leg is one member from the body to
+    the ground; a body point the legs do not lead to (the sparse fringe of a shrub, a
+    footing block under a stretch of leg the scan missed) has no leg standing on the
+    ground beside it (the AHN corridor: 266 ground points round two such feet, no labelled
+    tower point within 2 m of the ground). Without the band (a strip holding only the
+    legs) every low point is a foot."""
+    low = body & (h < 0.3 * top_h)
+    lower = np.flatnonzero(body & (h < TOWER_BODY[1] * top_h))
+    seed = h[lower] >= TOWER_BODY[0] * top_h
+    if not seed.any():
+        return p[low]
+    labels = voxel_components(p[lower], TOWER_FOOT_REACH / 2)
+    led = np.zeros(len(p), bool)
+    led[lower[np.isin(labels, labels[seed])]] = True
+    return p[low & led]
 
 
 def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.ndarray,
@@ -597,7 +635,7 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
             # seen whole in an earlier strip: this strip may hold only its legs
             body = _tower_body(p, h, column, top_h)
             is_tower[local[body]] = True
-            feet.append(p[body & (h < 0.3 * top_h)])
+            feet.append(_tower_feet(p, h, body, top_h))
             continue
         if wire_tree is None:
             continue
@@ -621,7 +659,7 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
                                     wire_xy_tree)):
             body = _tower_body(p, h, column, top_h)
             is_tower[local[body]] = True
-            feet.append(p[body & (h < 0.3 * top_h)])
+            feet.append(_tower_feet(p, h, body, top_h))
             found.append((float(top[0]), float(top[1]), TOWER_RADIUS * top_h))
     # pieces of one tower (arms cut off by the wires) are one tower: the widest stands
     towers: list[tuple[float, float, float]] = []
