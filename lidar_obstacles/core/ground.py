@@ -104,20 +104,22 @@ class HybridSettings:
     low_window: int = 7  # cells, the neighbourhood of the low-blunder test
     # Where that window holds no other ground (see _lone_low_cells), a point more than
     # `low_outlier` plus `lone_slope` times the distance below the nearest ground within
-    # `lone_reach` is a blunder too: a noise echo beyond a strip's edge. On dense scans
-    # only, judged on the first labels' ground. Simulated 10 s flights, the simulator's
-    # noise echoes taken for ground: mixed 57 -> 2, corridor 48 -> 5, urban 104 -> 18,
-    # forest 52 -> 12 (of 600-1000); the clusters of 2-3 low points added to every
-    # message (see pit_cells) 4.2 -> 2.2 % in ground (corridor), 10 -> 6.1 % (urban);
-    # ground kappa of those flights and of AHN, whole and streamed, unchanged; ~0.4 ms a
-    # message. Each echo had sunk a bubble of the rolling DEM 20 m wide and 5-15 m deep:
-    # on the mixed flight, RMSE against the true terrain of the cells filled within 2 / 4
-    # / 8 m of the data 3.29 / 4.63 / 6.26 -> 0.35 / 0.50 / 0.80 m. Measured: lone_reach
-    # 15 m, lone_slope 0.5: 4 / 7 / 38 / 17 echoes in ground (the urban ones lie 15-30 m
-    # from any ground); 30 m, 0.5: urban 32; 15 m, 0.3: urban 31. Judged after the label
-    # rounds: the same, but the surface rebuilt once more, +4 ms a message. Judged on
-    # every cell's lowest point before any labels: a street seen alone between roofs has
-    # only roofs nearest (urban building points in ground 0.78 -> 0.92 %).
+    # `lone_reach` is a blunder too: a noise echo beyond a strip's edge. Judged on the
+    # first labels' ground. Simulated 10 s flights, the simulator's noise echoes taken
+    # for ground: mixed 57 -> 2, corridor 48 -> 5, urban 104 -> 18, forest 52 -> 9 (of
+    # 600-1000; forest 12 with the test on dense scans only); the clusters of 2-3 low
+    # points added to every message (see pit_cells) 4.2 -> 2.2 % in ground (corridor),
+    # 10 -> 6.1 % (urban); ground kappa of those flights and of AHN, whole and streamed,
+    # unchanged; on ISPRS not one point changes (sparse, but the window is rarely empty
+    # and the slope allowance holds); ~0.4 ms a message. Each echo had sunk a bubble of
+    # the rolling DEM 20 m wide and 5-15 m deep: on the mixed flight, RMSE against the
+    # true terrain of the cells filled within 2 / 4 / 8 m of the data 3.29 / 4.63 / 6.26
+    # -> 0.35 / 0.50 / 0.80 m. Measured: lone_reach 15 m, lone_slope 0.5: 4 / 7 / 38 / 17
+    # echoes in ground (the urban ones lie 15-30 m from any ground); 30 m, 0.5: urban 32;
+    # 15 m, 0.3: urban 31. Judged after the label rounds: the same, but the surface
+    # rebuilt once more, +4 ms a message. Judged on every cell's lowest point before any
+    # labels: a street seen alone between roofs has only roofs nearest (urban building
+    # points in ground 0.78 -> 0.92 %).
     lone_reach: float = 30.0  # m, how far the cells judging a lone one are sought; 0: off
     lone_slope: float = 0.3  # rise over run the ground may fall towards a lone cell
     # Where the ground surface after the opening is steeper than `steep_slope`, only the
@@ -1218,7 +1220,7 @@ def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
             np.copyto(z_kept[:n], z[:n])
             np.copyto(z_kept[:n], np.inf, where=~ground)
             _grid_min(flat, z_kept, shape, out=grid, empty=np.inf)
-            if i == 0 and cfg.lone_reach > 0 and not sparse:  # (see _lone_low_cells)
+            if i == 0 and cfg.lone_reach > 0:  # (see _lone_low_cells)
                 lone = _lone_low_cells(grid, np.isfinite(grid), cfg.low_window // 2,
                                        cfg).ravel()[flat]
                 lone &= z_kept < grid.ravel()[flat] + cfg.low_outlier
