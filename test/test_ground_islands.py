@@ -113,12 +113,13 @@ def test_lone_low_echoes_beyond_a_strips_edge_leave_the_ground():
     rng = np.random.default_rng(4)
     pts = _flat(rng, (0.0, 0.0), (30.0, 40.0))
     pts[:, 2] += 0.2 * pts[:, 1]  # the land falls towards the edge at y = 0
-    echoes = np.array([[2.3, -5.2, -6.0], [23.6, -7.4, -9.5], [28.1, -4.6, -5.6]])
+    echoes = np.array([[2.3, -5.2, -6.0], [23.6, -7.4, -9.5], [28.1, -4.6, -5.6],
+                       [24.9, -6.1, -8.8]])  # the last three a few metres apart
     terrain = np.array([[13.2, -6.1, -1.3]])  # 6 m out, as low as the slope goes on
     pts = np.concatenate([pts, echoes, terrain])
     pts -= pts.mean(axis=0)
     is_echo = np.zeros(len(pts), bool)
-    is_echo[-4:-1] = True
+    is_echo[-5:-1] = True
     ground, height = morphological_ground(pts, HybridSettings())
     assert not ground[is_echo].any()
     assert ground[-1]
@@ -128,3 +129,6 @@ def test_lone_low_echoes_beyond_a_strips_edge_leave_the_ground():
     # Without the test they are ground (nothing within the blunder or pit windows).
     plain, _ = morphological_ground(pts, HybridSettings(lone_reach=0))
     assert plain[is_echo].all()
+    # Judged one cell at a time, the three close together shield each other.
+    single, _ = morphological_ground(pts, HybridSettings(lone_cells=1))
+    assert single[is_echo][1:].all() and not single[is_echo][0]
