@@ -290,6 +290,43 @@ def test_a_shrub_inside_a_towers_legs_is_not_tower():
     assert (c[truth == 14] == 14).mean() > 0.95
 
 
+def test_a_tower_seen_from_one_side_is_tower_across_and_known_from_its_stub():
+    """A flight beside the towers, below their tops (the simulator's corridor): it sees
+    them up to 21 m and their conductors 7 m aside, the near half of each lattice densely
+    and the far half at a fifth of that density. The mean of the points lies 1.1 m towards
+    the near side (the far legs fell outside the column: 0.60-0.67 of the far half was
+    tower); the middle of their extent is the axis. The next strip, leaving them, holds only
+    their lower 12 m and no wire: too low to be tall objects, they are the towers seen
+    before; a 2.5 m bush between the legs of one (an object of its own) is not."""
+    rng = np.random.default_rng(0)
+    xyz, truth = _three_spans(rng, wire_y=7.0, seen_up_to=21.0)
+    far_half = (truth == 15) & (xyz[:, 1] > 0)
+    keep = ~far_half | (rng.random(len(xyz)) < 0.2)
+    xyz, truth = xyz[keep], truth[keep]
+    ground, hag = truth == 2, xyz[:, 2].astype(np.float32)
+    first = classify_obstacles(xyz, ground, hag, cfg=CFG.obstacles)
+    c = first.classes
+    assert len(first.towers) == 2 and np.allclose(np.abs(first.towers[:, 1]), 0.0, atol=0.5)
+    assert (c[(truth == 15) & (xyz[:, 1] > 0)] == 15).mean() > 0.85  # the far half too
+    assert (c[truth == 15] == 15).mean() > 0.85
+    assert (c[truth == 5] == 15).mean() < 0.01  # the tree under the middle span
+    # the strip leaving them: the lower 12 m, no wire, and a bush inside the legs at x = -60
+    bush = rng.normal(0, 1.0, (1500, 3)) * [0.6, 0.6, 0.6] + [-60.0, 0.0, 1.5]
+    bush = bush[bush[:, 2] > 0.5]
+    strip = (truth != 14) & (xyz[:, 2] < 12.0)
+    xyz2 = np.concatenate([xyz[strip], bush])
+    truth2 = np.concatenate([truth[strip], np.full(len(bush), 4)])
+    ground2, hag2 = truth2 == 2, xyz2[:, 2].astype(np.float32)
+    alone = classify_obstacles(xyz2, ground2, hag2, cfg=CFG.obstacles)
+    known = classify_obstacles(xyz2, ground2, hag2, cfg=CFG.obstacles,
+                               known_towers=first.towers)
+    legs = truth2 == 15
+    assert (alone.classes[legs] == 15).mean() < 0.05
+    assert (known.classes[legs] == 15).mean() > 0.85
+    assert (known.classes[truth2 == 4] == 15).mean() < 0.02
+    assert (known.classes[truth2 == 5] == 15).mean() < 0.01
+
+
 def test_a_crane_reaching_a_lower_conductor_seen_on_one_side_is_no_tower():
     """A strip has seen the span on one side only so far: a 31 m mast touches the end of
     its lower conductor (25 m) while the upper one passes 9 m beside it (beyond the reach

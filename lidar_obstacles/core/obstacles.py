@@ -76,6 +76,7 @@ TOWER_FOOT_REACH = 1.0  # m: ground points this close to a tower's lowest points
 TOWER_LEG_NEIGHBOURHOOD = 1.5  # m: ball (the objects' link) in which a leg point's neighbours
 TOWER_LEG_CROWDING = 2.0  # ... number at most this many times the band's (90th percentile)
 TOWER_RADIUS = 0.25  # towers: points within this share of the height from the top's axis
+TOWER_BAND_MIN = 10  # points in the band TOWER_BODY from which its spread bounds the legs
 PLANAR_SHARE = 0.4  # buildings: share of a planar patch on its main RANSAC plane
 BUILDING_PLANARITY = 0.5  # (l2 - l3) / l1 of a roof or wall neighbourhood
 BUILDING_REACH = 1.5  # m: rough points this close to a roof (edges, chimneys) join it
@@ -97,7 +98,8 @@ class ObstacleObject:
 @dataclass(frozen=True)
 class ObstacleClasses:
     """classes: (N,) uint8 ASPRS; object_id: (N,) int32 (-1 outside objects); towers:
-    (T, 3) x, y, radius (m) of the towers recognised, for the next message's known_towers;
+    (T, 4) x, y, radius and height above ground (m) of the towers recognised, for the next
+    message's known_towers;
     wires: (W, 3) m, the wire points thinned to one per WIRE_MEMORY_VOXEL, for its
     known_wires; buildings: (B, 3) m, the roof and wall points thinned to one per
     BUILDING_MEMORY_VOXEL, for its known_buildings."""
@@ -106,7 +108,7 @@ class ObstacleClasses:
     object_id: np.ndarray
     objects: tuple[ObstacleObject, ...]
     timings: dict[str, float] = field(default_factory=dict)
-    towers: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    towers: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     wires: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     buildings: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
@@ -552,33 +554,39 @@ def _wires_sag_away(top_xy: np.ndarray, top_z: float, touching: np.ndarray,
 
 def _tower_body(p: np.ndarray, h: np.ndarray, column: np.ndarray, top_h: float
                 ) -> np.ndarray:
-    """(M,) bool: the tower's own points among its `column` (p (M, 3) m, h (M,) m above
-    ground, top_h its height). Below the body's band TOWER_BODY (under the arms, above
-    the clutter round its foot) a lattice's legs spread at most TOWER_TAPER m per m from
-    the band's own spread (75th percentile of the distance to the band's axis) plus
-    TOWER_LEG_MARGIN: bushes and sheds round its foot, which touch it and so join its
-    object, are not tower (the AHN corridor towers: 1 700 such points beside 1 200 tower
-    points). Within that spread the legs are still a few thin members, as the band is: a
-    point with more than TOWER_LEG_CROWDING times the band's neighbours within
-    TOWER_LEG_NEIGHBOURHOOD (its 90th percentile, so the scan's density cancels out) lies
-    in something that fills space, foliage or a footing block (07CZ2_14: a 6 m shrub under
-    one side of a tower whose lattice the scan shows only from 6 m up, 380 points inside
-    the spread; 12AN2_20: the legs' concrete blocks 0.5-1 m high). A column without that
-    band (a strip holding only its legs) is kept whole."""
+    """(M,) bool: the tower's own points in its object (p (M, 3) m, h (M,) m above ground,
+    top_h its height): from the body's band TOWER_BODY (under the arms, above the clutter
+    round its foot) up, those in its `column` or within the band's reach, and below the
+    band its legs, which spread at most TOWER_TAPER m per m from the band's own spread
+    (75th percentile of the distance to the band's middle) plus TOWER_LEG_MARGIN: bushes
+    and sheds round its foot, which touch it and so join its object, are not tower (the
+    AHN corridor towers: 1 700 such points beside 1 200 tower points). The reach, not the
+    column, bounds the legs: the column is a share of the height seen, and a flight below
+    a tower's top sees a 36 m tower up to 18 m, whose legs stand 5.7 m from its axis,
+    outside a column of 4.5 m (the simulated corridor's second tower). Within that spread
+    the legs are still a few thin members, as the band is: a point with more than
+    TOWER_LEG_CROWDING times the band's neighbours within TOWER_LEG_NEIGHBOURHOOD (its
+    90th percentile, so the scan's density cancels out) lies in something that fills
+    space, foliage or a footing block (07CZ2_14: a 6 m shrub under one side of a tower
+    whose lattice the scan shows only from 6 m up, 380 points inside the spread;
+    12AN2_20: the legs' concrete blocks 0.5-1 m high). A column without that
+    band holds no body below it, where legs and bushes look alike (streamed 07CZ2_14: a
+    strip holding a 6 m bush and a few of the lowest members of a known 43 m tower took
+    430 bush points for its legs)."""
     lo_h, hi_h = TOWER_BODY[0] * top_h, TOWER_BODY[1] * top_h
     band = column & (h >= lo_h) & (h < hi_h)
-    if band.sum() < 10:
-        return column
-    r = row_norm(p[:, :2] - column_mean(p[band, :2]))
+    if band.sum() < TOWER_BAND_MIN:
+        return column & (h >= lo_h)
+    r = row_norm(p[:, :2] - _middle(p[band, :2]))
     reach = (np.percentile(r[band], 75) + TOWER_LEG_MARGIN
              + TOWER_TAPER * np.maximum(lo_h - h, 0.0))
-    legs = np.flatnonzero(column & (h < lo_h) & (r <= reach))
+    legs = np.flatnonzero((h < lo_h) & (r <= reach))
     if len(legs):
         tree = search_tree(p)  # the whole object: a shrub is crowded by its parts outside
         crowd = tree.query_ball_point(p[legs], TOWER_LEG_NEIGHBOURHOOD, return_length=True)
         own = tree.query_ball_point(p[band], TOWER_LEG_NEIGHBOURHOOD, return_length=True)
         legs = legs[crowd <= TOWER_LEG_CROWDING * np.percentile(own, 90)]
-    body = column & (h >= lo_h)
+    body = (column | (r <= reach)) & (h >= lo_h)
     body[legs] = True
     return body
 
@@ -605,68 +613,128 @@ def _tower_feet(p: np.ndarray, h: np.ndarray, body: np.ndarray, top_h: float
     return p[low & led]
 
 
+def _middle(xy: np.ndarray) -> np.ndarray:
+    """(2,) m: the middle of the extent (5th to 95th percentile) of (P, 2) points. A flight
+    beside a tower sees its near face densely and its far face sparsely, so their mean lies
+    towards the near face (the simulated corridor: 2-3 m off a 36 m tower's axis) while
+    the middle of a symmetric lattice's extent is its axis."""
+    n = len(xy)
+    k = [int(0.05 * (n - 1)), int(np.ceil(0.95 * (n - 1)))]
+    lo, hi = np.partition(xy, k, axis=0)[k]  # ~4 x faster than np.percentile
+    return (lo + hi) / 2.0
+
+
+def _known_columns(xy: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """(P,) int: which of the towers `known` (K, 4: x, y, radius, height m) has each of the
+    (P, 2) points xy (m) in its column, -1 none (the nearest when columns overlap)."""
+    which = np.full(len(xy), -1)
+    best = np.full(len(xy), np.inf)
+    for i, k in enumerate(known):  # a few towers near a message
+        d = row_norm(xy - k[:2])
+        inside = (d < k[2]) & (d < best)
+        which[inside], best[inside] = i, d[inside]
+    return which
+
+
+def _carries_wires(p: np.ndarray, h: np.ndarray, top: np.ndarray, column: np.ndarray,
+                   wire_xyz: np.ndarray, wire_tree: cKDTree, wire_xy_tree: cKDTree) -> bool:
+    """True when the tall object p (M, 3) m, h (M,) m above ground, whose `column` (M,) bool
+    stands round the axis `top` (2,) m, carries the wires (W, 3) m (trees: wire_tree on
+    xyz, wire_xy_tree on their xy): wires touch it or hang right over its top, none passes
+    higher over it, and they sag away from it."""
+    top_h = float(h.max())
+    dist, near = wire_tree.query(p[column], distance_upper_bound=TOWER_WIRE_GAP)
+    col_top = p[column, 2].max()
+    # The earth wire hangs from the peak, a thin spike a scanner may miss, and the
+    # conductors from arms a flight below the top may not see: wire right over the top
+    # (within TOWER_PEAK, and TOWER_ARM aside) is attached to it, not passing over it.
+    peak = np.asarray(wire_xy_tree.query_ball_point(top, r=TOWER_ARM), np.int64)
+    peak = peak[(wire_xyz[peak, 2] >= col_top) & (wire_xyz[peak, 2] <= col_top + TOWER_PEAK)]
+    touching = np.unique(np.concatenate([near[np.isfinite(dist)], peak]))
+    # Wire higher than that within TOWER_WIRE_GAP (horizontally) of its upper half
+    # passes over it. Only the few wire points that high are searched for: a forest's
+    # tall component listing the wires near each of its points cost ~9 ms a message.
+    high_wire = wire_xyz[wire_xyz[:, 2] > col_top + TOWER_PEAK, :2]
+    upper = p[column & (h > 0.5 * top_h), :2]
+    wire_above = bool(len(high_wire)) and bool(len(upper)) and bool(np.isfinite(
+        cKDTree(upper).query(high_wire, distance_upper_bound=TOWER_WIRE_GAP)[0]).any())
+    return bool(len(touching)) and not wire_above and _wires_sag_away(
+        top, col_top, wire_xyz[touching], wire_xyz, wire_xy_tree)
+
+
 def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.ndarray,
-            tall: np.ndarray, wire_xyz: np.ndarray,
+            tall: np.ndarray, stubs: np.ndarray, wire_xyz: np.ndarray,
             known: np.ndarray) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
     """Which of the (M,) points `members` (indices into xyz, grouped into objects by
-    `labels`) are towers, checking the `tall` objects against the wires
-    (W, 3) or the towers already `known` (K, 3: x, y, radius m) from earlier messages.
-    Returns the (M,) bool, the feet (F, 3) of each tower, and the towers (T, 3) found."""
+    `labels`) are towers, checking the `tall` objects against the wires (W, 3) or the
+    towers already `known` (K, 4: x, y, radius, height m) from earlier messages, and the
+    lower `stubs` (objects reaching into a known tower's column) against those.
+    Returns the (M,) bool, the feet (F, 3) of each tower, and the towers (T, 4) found."""
     is_tower = np.zeros(len(members), bool)
     feet: list[np.ndarray] = []
-    found: list[tuple[float, float, float]] = []
-    if (len(wire_xyz) == 0 and len(known) == 0) or len(tall) == 0:
-        return is_tower, feet, np.zeros((0, 3))
+    found: list[tuple[float, float, float, float]] = []
+    if (len(wire_xyz) == 0 and len(known) == 0) or len(tall) + len(stubs) == 0:
+        return is_tower, feet, np.zeros((0, 4))
     wire_tree = cKDTree(wire_xyz) if len(wire_xyz) else None
     wire_xy_tree = cKDTree(wire_xyz[:, :2]) if len(wire_xyz) else None
-    for lab in tall:
+    for lab in np.concatenate([tall, stubs]):
         local = np.flatnonzero(labels == lab)  # a few tall objects: cheaper than sorting
         p, h = xyz[members[local]], hag[members[local]]
         top_h = float(h.max())
         # A tower carries wires: they end at its arms, at or below its top (a tree under
         # the line stays below the wires next to it). Trees touching the tower join its
-        # component, so only the column around its top is tower.
-        top = column_mean(p[h > 0.7 * top_h, :2])
-        off_axis = row_norm(p[:, :2] - top)
-        column = off_axis < TOWER_RADIUS * top_h
+        # component, so only the column around its axis is tower: the middle of its upper
+        # half, arms and all (a flight beside a tower below its top sees the far face of
+        # its lower part: on the simulated corridor's second tower the mean of the points
+        # above 0.7 of the height lay 2.3 m off the axis, that middle 0.1 m; median of 26
+        # messages).
+        top = _middle(p[h > 0.5 * top_h, :2])
+        stub = lab in stubs
+        seen = _known_columns(top[None], known)[0] if len(known) and not stub else -1
+        if stub:
+            # Lower than a tower, but standing in the column of one seen in an earlier
+            # strip: a strip leaving the simulated corridor's towers holds lattices 3-15 m
+            # high that were 18-28 m towers a second earlier. It is that tower's lower part
+            # when it holds the tower's band and the band's middle stands in its column.
+            inside = _known_columns(p[:, :2], known)
+            for k in np.unique(inside[inside >= 0]):
+                band = (h >= TOWER_BODY[0] * known[k, 3]) & (h < TOWER_BODY[1] * known[k, 3])
+                if band.sum() < TOWER_BAND_MIN:
+                    continue  # without the band its legs and the bushes round them look alike
+                top = _middle(p[band, :2])
+                if row_norm(top[None] - known[k, :2])[0] < known[k, 2]:
+                    seen = int(k)
+                    break
+            if seen < 0:
+                continue
+        column = row_norm(p[:, :2] - top) < TOWER_RADIUS * top_h
         if not column.any():
-            continue  # the top's centre lies off every point: a ring of tall things, no mast
-        if len(known) and (np.linalg.norm(known[:, :2] - top, axis=1) < known[:, 2]).any():
-            # seen whole in an earlier strip: this strip may hold only its legs
-            body = _tower_body(p, h, column, top_h)
-            is_tower[local[body]] = True
-            feet.append(_tower_feet(p, h, body, top_h))
+            continue  # no mast at the top's middle: a ring of tall things
+        carries = (not stub and wire_tree is not None
+                   and _carries_wires(p, h, top, column, wire_xyz, wire_tree, wire_xy_tree))
+        if seen < 0 and not carries:
             continue
-        if wire_tree is None:
-            continue
-        dist, near = wire_tree.query(p[column], distance_upper_bound=TOWER_WIRE_GAP)
-        col_top = p[column, 2].max()
-        # The earth wire hangs from the peak, a thin spike a scanner may miss, and the
-        # conductors from arms a flight below the top may not see: wire right over the top
-        # (within TOWER_PEAK, and TOWER_ARM aside) is attached to it, not passing over it.
-        peak = np.asarray(wire_xy_tree.query_ball_point(top, r=TOWER_ARM), np.int64)
-        peak = peak[(wire_xyz[peak, 2] >= col_top) & (wire_xyz[peak, 2] <= col_top + TOWER_PEAK)]
-        touching = np.unique(np.concatenate([near[np.isfinite(dist)], peak]))
-        # Wire higher than that within TOWER_WIRE_GAP (horizontally) of its upper half
-        # passes over it. Only the few wire points that high are searched for: a forest's
-        # tall component listing the wires near each of its points cost ~9 ms a message.
-        high_wire = wire_xyz[wire_xyz[:, 2] > col_top + TOWER_PEAK, :2]
-        upper = p[column & (h > 0.5 * top_h), :2]
-        wire_above = bool(len(high_wire)) and bool(len(upper)) and bool(np.isfinite(
-            cKDTree(upper).query(high_wire, distance_upper_bound=TOWER_WIRE_GAP)[0]).any())
-        if (len(touching) and not wire_above
-                and _wires_sag_away(top, col_top, wire_xyz[touching], wire_xyz,
-                                    wire_xy_tree)):
-            body = _tower_body(p, h, column, top_h)
-            is_tower[local[body]] = True
-            feet.append(_tower_feet(p, h, body, top_h))
-            found.append((float(top[0]), float(top[1]), TOWER_RADIUS * top_h))
+        tower_h = top_h
+        if seen >= 0:
+            # Seen in an earlier strip: this strip may hold only part of it (the legs).
+            # Its column and height are the tower's, not the part's.
+            column |= row_norm(p[:, :2] - known[seen, :2]) < known[seen, 2]
+            tower_h = max(top_h, float(known[seen, 3]))
+        body = _tower_body(p, h, column, tower_h)
+        is_tower[local[body]] = True
+        feet.append(_tower_feet(p, h, body, tower_h))
+        if carries:
+            # Every view that carries wires is remembered, also of a known tower: the first
+            # strip to see the simulated corridor's second tower held its front only and
+            # put its axis 2.2 m off; the strips leaving it hold its back, whose band's
+            # middle lies 5 m from that first view's axis.
+            found.append((float(top[0]), float(top[1]), TOWER_RADIUS * tower_h, tower_h))
     # pieces of one tower (arms cut off by the wires) are one tower: the widest stands
-    towers: list[tuple[float, float, float]] = []
+    towers: list[tuple[float, float, float, float]] = []
     for t in sorted(found, key=lambda t: -t[2]):
         if all(np.hypot(t[0] - k[0], t[1] - k[1]) >= k[2] for k in towers):
             towers.append(t)
-    return is_tower, feet, np.array(towers).reshape(-1, 3)
+    return is_tower, feet, np.array(towers).reshape(-1, 4)
 
 
 def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground: np.ndarray, *,
@@ -675,8 +743,9 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
                        known_wires: np.ndarray | None = None,
                        known_buildings: np.ndarray | None = None) -> ObstacleClasses:
     """Classes of every point of (N, 3) float64 xyz (m) given the ground mask (N,) bool and
-    the height above ground (N,) float32 m (NaN: unknown, taken as 0). known_towers: (K, 3)
-    x, y, radius (m) of towers recognised in earlier messages (ObstacleClasses.towers);
+    the height above ground (N,) float32 m (NaN: unknown, taken as 0). known_towers: (K, 4)
+    x, y, radius, height (m) of towers recognised in earlier messages
+    (ObstacleClasses.towers);
     known_wires: (W, 3) m, wire points of earlier messages (ObstacleClasses.wires);
     known_buildings: (B, 3) m, their roof and wall points (ObstacleClasses.buildings)."""
     t0 = time.perf_counter()
@@ -698,7 +767,7 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
     cand = nong[hag[nong] >= cfg.min_height]
     t1 = time.perf_counter()
     objects: list[ObstacleObject] = []
-    towers = wires = buildings = np.zeros((0, 3))
+    towers, wires, buildings = np.zeros((0, 4)), np.zeros((0, 3)), np.zeros((0, 3))
     known_wires = np.zeros((0, 3)) if known_wires is None else np.asarray(known_wires, float)
     known_buildings = (np.zeros((0, 3)) if known_buildings is None
                        else np.asarray(known_buildings, float))
@@ -717,10 +786,20 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
         kept = count >= cfg.min_points
         object_id[cand[rest[kept[labels]]]] = labels[kept[labels]]
         next_id = int(labels.max()) + 1 if len(labels) else 0
+        known = (np.zeros((0, 4)) if known_towers is None
+                 else np.asarray(known_towers, float).reshape(-1, 4))
+        tall = kept & (height > cfg.tower_min_height)
+        # lower objects that reach a known tower's band and stand in its column (only
+        # those are searched: all points of the corridor flight's messages cost ~2 ms)
+        low = kept & ~tall
+        stubs = np.zeros(len(kept), bool)
+        if len(known):
+            low &= height >= TOWER_BODY[0] * known[:, 3].min()
+            look = rest[low[labels]]
+            stubs[labels[low[labels]][_known_columns(xyz[cand[look], :2], known) >= 0]] = True
         is_tower, tower_feet, towers = _towers(
-            xyz, hag, cand[rest], labels,
-            np.flatnonzero(kept & (height > cfg.tower_min_height)), wire_xyz,
-            np.zeros((0, 3)) if known_towers is None else np.asarray(known_towers, float))
+            xyz, hag, cand[rest], labels, np.flatnonzero(tall), np.flatnonzero(stubs),
+            wire_xyz, known)
         tower = np.zeros(len(cand), bool)
         tower[rest[is_tower]] = True
         classes[cand[tower]] = TOWER

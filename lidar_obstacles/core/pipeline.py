@@ -53,9 +53,10 @@ class RecentObjects:
         self.rows, self.stamps = all_rows[keep], stamps[keep]
 
 
-# A strip that catches only a tower's legs still knows it: x, y, radius (m) of each tower.
+# A strip that catches only a tower's legs still knows it: x, y, radius and height (m) of
+# each tower.
 def _tower_memory() -> RecentObjects:
-    return RecentObjects(3, seconds=60.0, size=256, radius=50.0)
+    return RecentObjects(4, seconds=60.0, size=256, radius=50.0)
 
 
 # A strip that catches a wire only in short pieces, or a tower but not its wires, still
