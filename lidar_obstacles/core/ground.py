@@ -104,28 +104,26 @@ class HybridSettings:
     low_window: int = 7  # cells, the neighbourhood of the low-blunder test
     # Where that window holds no other ground (see _lone_low_cells), a point more than
     # `low_outlier` plus `lone_slope` times the distance below the nearest ground within
-    # `lone_reach` is a blunder too: a noise echo beyond a strip's edge. Judged on the
-    # first labels' ground, in pieces of up to `lone_cells` (echoes of one strip a few
-    # metres apart). Simulated 10 s flights, the simulator's noise echoes taken for
-    # ground: mixed 57 -> 1, corridor 48 -> 0, urban 104 -> 7, forest 52 -> 2 (of
-    # 600-1000); the clusters of 2-3 low points added to every message (see pit_cells)
-    # 4.2 -> 1.9 % in ground (corridor), 10 -> 5.2 % (urban); ground kappa and Type I of
-    # those flights and of AHN whole unchanged, AHN4 streamed 0.922 -> 0.923; on ISPRS
-    # one point of 15 samples changes (sparse, but the window is rarely empty); ~0.4 ms
-    # a message, ~5 % of the ISPRS ground time. Each echo had sunk a bubble of the
-    # rolling DEM 20 m wide and 5-15 m deep (bench_rolling_dem.py): filled cells within
-    # 4 m of the data more than 1 m off
-    # the true terrain 40 / 31 / 45 / 22 % -> 0 / 0 / 7.5 / 0 %, the same as the DEM
-    # of the reference ground but on the urban flight. Measured (echoes in ground, the
-    # same four flights): lone_slope 0.5 / 0.3 / 0.2: 4 / 7 / 38 / 17, 2 / 0 / 15 / 9,
-    # 1 / 0 / 10 / 6 (the urban ones lie 15-30 m from any ground, which the slope lets
-    # fall too far); lone_reach 15 m: urban 31; one cell at a time, not pieces (0.3):
-    # 2 / 5 / 18 / 9. Judged after the label rounds: the same, but the surface rebuilt
-    # once more, +4 ms a message. Judged on every cell's lowest point before any labels:
-    # a street seen alone between roofs has only roofs nearest (urban building points
-    # in ground 0.78 -> 0.92 %). A lone real ground point on terrain falling faster
-    # than lone_slope beyond a strip's edge is lost: one point, where a kept echo sinks
-    # the DEM around it.
+    # `lone_reach` is a blunder too: a noise echo beyond a strip's edge. Judged on the first
+    # labels' ground, in pieces of up to `lone_cells` (echoes of one strip a few metres
+    # apart). Simulated 10 s flights, the simulator's noise echoes taken for ground: mixed
+    # 57 -> 1, corridor 48 -> 0, urban 104 -> 7, forest 52 -> 2 (of 600-1000); the clusters
+    # of 2-3 low points added to every message (see pit_cells) 4.2 -> 1.9 % in ground
+    # (corridor), 10 -> 5.2 % (urban); ground kappa and Type I of those flights and of AHN
+    # whole unchanged, AHN4 streamed 0.922 -> 0.923; on ISPRS one point of 15 samples
+    # changes (sparse, but the window is rarely empty); ~0.4 ms a message, ~5 % of the ISPRS
+    # ground time. Each echo had sunk a bubble of the rolling DEM 20 m wide and 5-15 m deep
+    # (bench_rolling_dem.py): filled cells within 4 m of the data more than 1 m off the true
+    # terrain 40 / 31 / 45 / 22 % -> 0 / 0 / 7.5 / 0 %, the same as the DEM of the reference
+    # ground but on the urban flight. Measured (echoes in ground, the same four flights):
+    # lone_slope 0.5 / 0.3 / 0.2: 4 / 7 / 38 / 17, 2 / 0 / 15 / 9, 1 / 0 / 10 / 6 (the urban
+    # ones lie 15-30 m from any ground, which the slope lets fall too far); lone_reach 15 m:
+    # urban 31; one cell at a time, not pieces (0.3): 2 / 5 / 18 / 9. Judged after the label
+    # rounds: the same, but the surface rebuilt once more, +4 ms a message. Judged on every
+    # cell's lowest point before any labels: a street seen alone between roofs has only
+    # roofs nearest (urban building points in ground 0.78 -> 0.92 %). A lone real ground
+    # point on terrain falling faster than lone_slope beyond a strip's edge is lost: one
+    # point, where a kept echo sinks the DEM around it.
     lone_reach: float = 30.0  # m, how far the cells judging a lone one are sought; 0: off
     lone_slope: float = 0.1  # rise over run the ground may fall towards a lone cell
     lone_cells: int = 4  # cells of a piece judged as lone at most
