@@ -128,6 +128,40 @@ def test_local_shape_and_eigenvalues_by_hand():
     assert (local_shape(ball, radius=2.0).linearity < 0.8).mean() > 0.95
 
 
+def test_occupied_neighbours_match_a_brute_force_count(monkeypatch):
+    """Both ways of counting a voxel's occupied neighbours (dense grid, sorted keys) give
+    the brute-force count, also at the box's faces."""
+    from lidar_obstacles.core import obstacles
+
+    rng = np.random.default_rng(3)
+    ijk = np.unique(rng.integers(0, 6, (150, 3)), axis=0)
+    offsets = np.abs(ijk[:, None, :] - ijk[None, :, :]).max(axis=2)
+    expected = (offsets == 1).sum(axis=1)
+    assert np.array_equal(obstacles._occupied_neighbours(ijk), expected)
+    monkeypatch.setattr(obstacles, "DENSE_OCCUPANCY_CELLS", 0)
+    assert np.array_equal(obstacles._occupied_neighbours(ijk), expected)
+    assert np.array_equal(obstacles._occupied_neighbours(np.zeros((1, 3), np.int64)), [0])
+
+
+def test_a_solid_block_is_not_searched_and_has_no_line_or_plane():
+    """Inside a filled block the shape is a solid's without a search; on its faces and
+    along a wire beside it the search runs as before."""
+    from lidar_obstacles.core.obstacles import local_shape
+
+    g = np.arange(0.0, 6.0, 0.2)
+    block = np.stack(np.meshgrid(g, g, g), axis=-1).reshape(-1, 3)
+    wire = np.column_stack([np.linspace(-20, 30, 500), np.full(500, 3.0), np.full(500, 12.0)])
+    shape = local_shape(np.concatenate([block, wire]), radius=2.0)
+    inner = np.all((block > 1.6) & (block < 4.4), axis=1)
+    assert inner.sum() > 100
+    assert np.all(shape.linearity[:len(block)][inner] == 0.0)
+    assert np.all(shape.planarity[:len(block)][inner] == 0.0)
+    assert np.all(shape.roughness[:len(block)][inner] > 0.5)
+    face = block[:, 2] < 0.1
+    assert np.all(shape.roughness[:len(block)][face] < 0.5)  # searched: a half-filled ball
+    assert np.all(shape.linearity[len(block):] > 0.95)
+
+
 def _span_through_crown(rng):
     """A 120 m wire at 20 m through a 12 m crown, a second conductor 0.5 m beside it."""
     parts, labels = [], []
