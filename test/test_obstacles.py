@@ -138,9 +138,29 @@ def test_occupied_neighbours_match_a_brute_force_count(monkeypatch):
     offsets = np.abs(ijk[:, None, :] - ijk[None, :, :]).max(axis=2)
     expected = (offsets == 1).sum(axis=1)
     assert np.array_equal(obstacles._occupied_neighbours(ijk), expected)
-    monkeypatch.setattr(obstacles, "DENSE_OCCUPANCY_CELLS", 0)
+    monkeypatch.setattr(obstacles, "DENSE_GRID_CELLS", 0)
     assert np.array_equal(obstacles._occupied_neighbours(ijk), expected)
     assert np.array_equal(obstacles._occupied_neighbours(np.zeros((1, 3), np.int64)), [0])
+
+
+def test_voxel_components_by_hand_on_both_paths(monkeypatch):
+    """Connected voxels (also only by a corner) share a label, a gap of one voxel parts
+    them, and labels follow the first voxel's order; the dense grid and the graph of
+    occupied voxels give the same labels."""
+    from lidar_obstacles.core import obstacles
+
+    pts = np.array([[0.1, 0.1, 0.1], [1.2, 1.3, 1.1],  # corner neighbours: one piece
+                    [3.5, 0.2, 0.2],  # one empty voxel from them
+                    [0.5, 5.5, 0.5], [0.6, 5.4, 0.6]])  # one voxel, two points
+    expected = [0, 0, 2, 1, 1]
+    assert obstacles.voxel_components(pts, 1.0).tolist() == expected
+    rng = np.random.default_rng(4)
+    cloud = rng.uniform(0, 40, (3000, 3))
+    dense = obstacles.voxel_components(cloud, 1.5)
+    monkeypatch.setattr(obstacles, "DENSE_GRID_CELLS", 0)
+    assert obstacles.voxel_components(pts, 1.0).tolist() == expected
+    assert np.array_equal(obstacles.voxel_components(cloud, 1.5), dense)
+    assert dense.max() > 5
 
 
 def test_a_solid_block_is_not_searched_and_has_no_line_or_plane():

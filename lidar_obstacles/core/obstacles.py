@@ -33,6 +33,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage
 from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -54,7 +55,7 @@ from lidar_obstacles.core.ransac import ransac_plane
 PARALLEL_MIN = 20000  # query points x neighbours from which cKDTree runs on all cores
 MAX_NEIGHBOURS = 32  # of the shape neighbourhoods: more add little but cost time
 SOLID_NEIGHBOURS = 22  # of a coarse voxel's 26 neighbours occupied: inside a solid (local_shape)
-DENSE_OCCUPANCY_CELLS = 8_000_000  # voxel box up to which occupancy is counted on a dense grid
+DENSE_GRID_CELLS = 8_000_000  # voxel box up to which voxel work runs on a dense grid
 BELOW_GROUND_NOISE = 1.5  # m: points this far below the ground surface are noise
 WIRE_GAP = 2.5  # m: a wire point has no other point from this far below it up to 0.5 m
 WIRE_MIN_RUN = 10.0  # m: wire candidates joined into shorter runs are not wires
@@ -305,10 +306,10 @@ def _occupied_neighbours(ijk: np.ndarray) -> np.ndarray:
     """(V,) int: how many of the 26 voxels around each of the V distinct voxels (V, 3)
     (non-negative integer indices) are among them. On a dense grid of the voxels' box
     (~1.5 ms for a 50 000-point strip's 14 000 voxels), or, for a box of more than
-    DENSE_OCCUPANCY_CELLS (a whole survey tile), by searching the 26 offsets' keys."""
+    DENSE_GRID_CELLS (a whole survey tile), by searching the 26 offsets' keys."""
     span = column_max(ijk) + 3  # one empty voxel of margin on each side
     cells = int(span[0]) * int(span[1]) * int(span[2])
-    if cells <= DENSE_OCCUPANCY_CELLS:
+    if cells <= DENSE_GRID_CELLS:
         grid = np.zeros(tuple(int(s) for s in span), np.uint8)
         at = tuple(ijk[:, a] + 1 for a in range(3))
         grid[at] = 1
@@ -376,12 +377,21 @@ def _voxel_centroids(xyz: np.ndarray, lo: np.ndarray, edge: float
 
 
 def voxel_components(xyz: np.ndarray, size: float) -> np.ndarray:
-    """(M,) int labels: connected components of occupied voxels (26-neighbourhood)."""
+    """(M,) int labels: connected components of occupied voxels (26-neighbourhood),
+    numbered in the order of their first voxel (x, then y, then z). On a dense grid of the
+    voxels' box (2-5 x faster: a forest strip's 45 000 points 2-3 ms instead of 4-13 ms),
+    or, for a box of more than DENSE_GRID_CELLS, on a graph of the occupied voxels."""
     m = len(xyz)
     if m == 0:
         return np.zeros(0, np.int64)
     ijk = np.floor((xyz - column_min(xyz)) / size).astype(np.int64) + 1
     dims = column_max(ijk) + 2
+    if int(dims[0]) * int(dims[1]) * int(dims[2]) <= DENSE_GRID_CELLS:
+        grid = np.zeros(tuple(int(d) for d in dims), bool)
+        at = (ijk[:, 0], ijk[:, 1], ijk[:, 2])
+        grid[at] = True
+        labels, _ = ndimage.label(grid, structure=np.ones((3, 3, 3), bool))
+        return labels[at].astype(np.int64) - 1
     key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
     vox, inv = np.unique(key, return_inverse=True)
     rows, cols = [], []
