@@ -180,6 +180,12 @@ def symmetric_eig3(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 
     ~3 x faster than batched ``np.linalg.eigh``, whose per-matrix LAPACK call was the
     largest cost of the wire search."""
+    values = symmetric_eigenvalues3(cov)
+    return values, eigenvector3(cov, values[:, 0]), eigenvector3(cov, values[:, 2])
+
+
+def symmetric_eigenvalues3(cov: np.ndarray) -> np.ndarray:
+    """Eigenvalues (M, 3), descending, of (M, 3, 3) symmetric matrices (Smith 1961)."""
     a00, a11, a22 = cov[:, 0, 0], cov[:, 1, 1], cov[:, 2, 2]
     a01, a02, a12 = cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 2]
     q = (a00 + a11 + a22) / 3.0
@@ -193,42 +199,41 @@ def symmetric_eig3(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     phi = np.arccos(np.clip(det_b / 2.0, -1.0, 1.0)) / 3.0
     l1 = q + 2.0 * p * np.cos(phi)
     l3 = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
-    l2 = 3.0 * q - l1 - l3
-    values = np.column_stack([l1, l2, l3])
+    return np.column_stack([l1, 3.0 * q - l1 - l3, l3])
 
-    def vector(lam: np.ndarray) -> np.ndarray:
-        # The eigenvector is orthogonal to the rows of A - lam I: the longest cross product
-        # of two rows is the best conditioned choice.
-        r0 = np.column_stack([a00 - lam, a01, a02])
-        r1 = np.column_stack([a01, a11 - lam, a12])
-        r2 = np.column_stack([a02, a12, a22 - lam])
-        cands = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)])
-        norms = np.linalg.norm(cands, axis=2)
-        best = norms.argmax(axis=0)
-        idx = np.arange(len(lam))
-        v, nv = cands[best, idx], norms[best, idx]
-        out = np.zeros_like(v)
-        ok = nv > 0
-        out[ok] = v[ok] / nv[ok, None]
-        out[~ok] = (0.0, 0.0, 1.0)  # isotropic: any direction; pick vertical
-        return out
 
-    return values, vector(l1), vector(l3)
+def eigenvector3(cov: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """Unit eigenvectors (M, 3) of (M, 3, 3) symmetric matrices for their eigenvalues lam
+    (M,); vertical where any direction is one (isotropic)."""
+    a00, a11, a22 = cov[:, 0, 0], cov[:, 1, 1], cov[:, 2, 2]
+    a01, a02, a12 = cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 2]
+    # The eigenvector is orthogonal to the rows of A - lam I: the longest cross product of
+    # two rows is the best conditioned choice.
+    r0 = np.column_stack([a00 - lam, a01, a02])
+    r1 = np.column_stack([a01, a11 - lam, a12])
+    r2 = np.column_stack([a02, a12, a22 - lam])
+    cands = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)])
+    norms = np.linalg.norm(cands, axis=2)
+    best = norms.argmax(axis=0)
+    idx = np.arange(len(lam))
+    v, nv = cands[best, idx], norms[best, idx]
+    out = np.zeros_like(v)
+    ok = nv > 0
+    out[ok] = v[ok] / nv[ok, None]
+    out[~ok] = (0.0, 0.0, 1.0)
+    return out
 
 
 @dataclass(frozen=True)
 class LocalShape:
     """Per point, the shape of its neighbourhood (points within a radius): linearity
-    (l1-l2)/l1 and planarity (l2-l3)/l1 (M,); main axis and normal (M, 3) unit vectors;
-    roughness sqrt(l3) (M,) metres, the spread off the best local plane; count (M,) of
-    neighbouring voxels."""
+    (l1-l2)/l1 and planarity (l2-l3)/l1 (M,); main axis (M, 3) unit vectors; roughness
+    sqrt(l3) (M,) metres, the spread off the best local plane."""
 
     linearity: np.ndarray
     planarity: np.ndarray
     axis: np.ndarray
-    normal: np.ndarray
     roughness: np.ndarray
-    count: np.ndarray
 
 
 def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHBOURS
@@ -252,27 +257,25 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
     A coarse voxel with SOLID_NEIGHBOURS or more of its 26 neighbours occupied lies inside
     a solid (a crown): a plane or a line through 3 x 3 x 3 voxels crosses at most ~21 of
     them. It is not searched and gets the shape of a filled block (linearity and planarity
-    0, roughness the spread of a uniform 3-voxel block, count max_neighbours). Measured
+    0, roughness the spread of a uniform 3-voxel block). Measured
     over the neighbourhoods that pass the wire test (linear, near-horizontal) or the roof
     test (planar, smooth): none of them is solid on the AHN tiles (07CZ2_14, 12AN2_20,
     AHN4: 21 756 / 9 931 / 554 wire-like, 6 679 / 2 426 / 43 050 smooth points) or on the
     simulated flights; with 20 neighbours, 29 AHN4 roof points were. A forest strip's
     coarse voxels are 36 % solid, and its search 40 % shorter (59 -> 35 ms of CPU)."""
     m = len(xyz)
-    z, up = np.zeros(m), np.tile([0.0, 0.0, 1.0], (m, 1))
-    if m < 3:
-        return LocalShape(z, z, up, up, z, np.ones(m))
-    lo = column_min(xyz)
-    centre, _, _ = _voxel_grid(xyz, lo, radius / 8.0)
+    if m >= 3:
+        lo = column_min(xyz)
+        centre, _, _ = _voxel_grid(xyz, lo, radius / 8.0)
+    if m < 3 or len(centre) < 3:
+        return LocalShape(np.zeros(m), np.zeros(m), np.tile([0.0, 0.0, 1.0], (m, 1)),
+                          np.zeros(m))
     at, coarse, ijk = _voxel_grid(xyz, lo, 3.0 * radius / 8.0)
     v, q = len(centre), len(at)  # fine centroids, coarse query points
-    if v < 3:
-        return LocalShape(z, z, up, up, z, np.ones(m))
     # per coarse voxel: a solid block's shape, replaced below where searched
     linearity, planarity = np.zeros(q), np.zeros(q)
-    axis, normal = np.tile([0.0, 0.0, 1.0], (q, 1)), np.tile([0.0, 0.0, 1.0], (q, 1))
+    axis = np.tile([0.0, 0.0, 1.0], (q, 1))
     roughness = np.full(q, 3.0 * (3.0 * radius / 8.0) / np.sqrt(12.0))
-    n_near = np.full(q, float(max_neighbours))
     ask = np.flatnonzero(_occupied_neighbours(ijk) < SOLID_NEIGHBOURS)
     k = min(max_neighbours, v)
     dist, nn = search_tree(centre).query(at[ask], k=k, distance_upper_bound=radius,
@@ -293,13 +296,13 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
     cov = np.empty((len(ask), 3, 3))
     for j, (a, b) in enumerate(pairs):
         cov[:, a, b] = cov[:, b, a] = sums[:, 3 + j] / count - mean[:, a] * mean[:, b]
-    w, axis[ask], normal[ask] = symmetric_eig3(cov)
+    w = symmetric_eigenvalues3(cov)
+    axis[ask] = eigenvector3(cov, w[:, 0])
     w = np.maximum(w, 0.0)
     l1 = np.maximum(w[:, 0], 1e-12)
     linearity[ask], planarity[ask] = (w[:, 0] - w[:, 1]) / l1, (w[:, 1] - w[:, 2]) / l1
-    roughness[ask], n_near[ask] = np.sqrt(w[:, 2]), count
-    return LocalShape(linearity[coarse], planarity[coarse], axis[coarse], normal[coarse],
-                      roughness[coarse], n_near[coarse])
+    roughness[ask] = np.sqrt(w[:, 2])
+    return LocalShape(linearity[coarse], planarity[coarse], axis[coarse], roughness[coarse])
 
 
 def _occupied_neighbours(ijk: np.ndarray) -> np.ndarray:
