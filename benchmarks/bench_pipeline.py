@@ -102,10 +102,13 @@ def bench_live_latency(seconds: float, with_dem_builder: bool = False,
     os.environ.update(env)
     frames = list(simulate_flight(SimSettings(scene=scene, seed=3, duration=seconds)))
 
+    logs = tempfile.TemporaryDirectory()
+
     def start(name: str) -> subprocess.Popen:
         exe = Path(sys.executable).parent / name
         cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", f"lidar_obstacles.ros.{name}"]
-        return subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        with open(Path(logs.name) / f"{name}.log", "w") as log:
+            return subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
 
     procs = [start("obstacle_detector")] + ([start("dem_builder")] if with_dem_builder else [])
     rclpy.init()
@@ -158,14 +161,38 @@ def bench_live_latency(seconds: float, with_dem_builder: bool = False,
         rclpy.try_shutdown()
         for proc in procs:
             proc.send_signal(signal.SIGINT)
-        for proc in procs:
-            proc.wait(timeout=20)
+        slow_exits = stopped_nodes(procs, Path(logs.name))
+        logs.cleanup()
     lat = np.array(latencies[5:]) if len(latencies) > 10 else np.array(latencies)
     return {"published": len(frames), "received": len(latencies),
             "p50_ms": 1e3 * float(np.percentile(lat, 50)) if lat.size else None,
             "p95_ms": 1e3 * float(np.percentile(lat, 95)) if lat.size else None,
             "node_processing_p50_ms": float(node_side.get("latency_p50_ms", "nan")),
-            "node_processing_p95_ms": float(node_side.get("latency_p95_ms", "nan"))}
+            "node_processing_p95_ms": float(node_side.get("latency_p95_ms", "nan")),
+            "nodes_not_stopped_in_20_s": slow_exits}
+
+
+def stopped_nodes(procs: list[subprocess.Popen], logs: Path) -> list[str]:
+    """Wait up to 20 s for the nodes sent SIGINT to exit; one that has not is asked for its
+    threads' stacks (SIGUSR1, see run_node), which go to RESULTS/stuck_<node>.log, and
+    killed. Returns the names of those nodes."""
+    stuck = []
+    for proc in procs:
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            name = Path(proc.args[-1]).name.split(".")[-1]
+            proc.send_signal(signal.SIGUSR1)
+            time.sleep(1.0)
+            proc.kill()
+            proc.wait()
+            RESULTS.mkdir(parents=True, exist_ok=True)
+            log = logs / f"{name}.log"
+            (RESULTS / f"stuck_{name}.log").write_text(log.read_text() if log.exists() else "")
+            print(f"warning: {name} did not stop within 20 s of SIGINT (stacks: "
+                  f"{RESULTS / f'stuck_{name}.log'})", file=sys.stderr)
+            stuck.append(name)
+    return stuck
 
 
 def bench_memory(minutes: float) -> dict:

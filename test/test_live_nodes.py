@@ -225,11 +225,16 @@ def test_runtime_parameters_and_malformed_clouds(ros_node):
 
         assert _spin_until(ros_node, published_and_rejected, 30)
         assert det.poll() is None, "the node must survive malformed clouds"
+        # SIGUSR1: every thread's stack on stderr, and the node goes on
+        det.send_signal(signal.SIGUSR1)
+        time.sleep(0.5)
+        assert det.poll() is None
     finally:
         ros_node.destroy_subscription(sub)
         rc, log = _stop(det)
     assert rc == 0, log[-2000:]
     assert "dropped a cloud" in log and "row_step" in log
+    assert "Thread 0x" in log and "node_base.py" in log  # e.g. the worker, waiting for clouds
 
 
 @pytest.mark.parametrize("args, expected", [

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import bisect
 import collections
+import faulthandler
+import signal
 import sys
 import threading
 import time
@@ -290,6 +292,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
 
     single_threaded_blas()
     reuse_freed_memory()
+    # `kill -USR1 <pid>` prints every thread's stack to stderr: what a node that does not
+    # stop, or stalls, is doing (it keeps running).
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     try:
         rclpy.init(args=args if args is not None else sys.argv)
     except RCLError as exc:  # a --ros-args mistake: a params file that is missing or bad
