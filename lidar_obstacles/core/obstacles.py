@@ -1,8 +1,8 @@
 """Obstacle grouping and classification (ASPRS codes), and the clearance grid.
 
 Per point, from the covariance of its neighbours within `feature_radius` (eigenvalues
-l1 >= l2 >= l3): linearity (l1 - l2) / l1, planarity (l2 - l3) / l1, roughness sqrt(l3),
-the main axis and the normal (`local_shape`).
+l1 >= l2 >= l3): linearity (l1 - l2) / l1, planarity (l2 - l3) / l1, roughness sqrt(l3)
+and the main axis (`local_shape`; inside a crown's solid mass none of them is sought).
 
 1. Noise (7): points with too few neighbours within `noise_radius`, or far below ground.
 2. Wires (14): linear, near-horizontal points high above ground with empty space below
