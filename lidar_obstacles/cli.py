@@ -23,14 +23,15 @@ def _positive(text: str) -> float:
     return value
 
 
-def _between(low: float, high: float):
-    """An argparse type: a number in [low, high] (a rate of 1e-300 overflows a timer, a
-    tile of 1e-300 m is no tile)."""
+def _between(low: float, high: float, kind: type = float):
+    """An argparse type: a number of `kind` in [low, high] (a rate of 1e-300 overflows a
+    timer, a tile of 1e-300 m is no tile)."""
     def parse(text: str) -> float:
-        value = float(text)
+        value = kind(text)
         if not low <= value <= high:
             raise argparse.ArgumentTypeError(f"must lie in [{low:g}, {high:g}], got {text}")
         return value
+    parse.__name__ = kind.__name__  # argparse names the type in "invalid int value"
     return parse
 
 
@@ -42,6 +43,13 @@ _TOKENS = r"[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*"
 def _topic(text: str) -> str:
     if not re.fullmatch(rf"/?{_TOKENS}", text):
         raise argparse.ArgumentTypeError(f"{text!r} is not a valid ROS 2 topic name")
+    return text
+
+
+def _frame_id(text: str) -> str:
+    # tf2 names: no leading slash (REP-105), not empty (tf2 rejects an empty frame)
+    if not re.fullmatch(_TOKENS, text):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a valid frame id (e.g. map)")
     return text
 
 
@@ -82,6 +90,7 @@ _DEFAULT_PARAMS = "(default: none, the defaults in config/*.yaml)"
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="lidar-obstacles", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    p.commands = sub.choices  # type: ignore[attr-defined]  (name -> its parser)
 
     s = sub.add_parser("demo", help="simulate a UAV flight and run the whole job on it")
     s.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
@@ -98,7 +107,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="clouds in the map frame, or in the sensor frame (use odometry)")
     s.add_argument("--rate", type=_between(0.01, 1000.0), default=10.0,
                    help="clouds per second")
-    s.add_argument("--points", type=int, default=50_000, help="points per cloud")
+    s.add_argument("--points", type=_between(100, 1_000_000, int), default=50_000,
+                   help="points per cloud")
     s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",
                    help="rosbag2 storage of the output bag")
 
@@ -114,7 +124,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="without GPS time: strips of this width (m) along the longer axis")
     s.add_argument("--topic", type=_topic, default="/points",
                    help="PointCloud2 topic to write")
-    s.add_argument("--frame-id", default="map", help="frame_id of the clouds")
+    s.add_argument("--frame-id", type=_frame_id, default="map", help="frame_id of the clouds")
     s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",
                    help="rosbag2 storage of the output bag")
 
@@ -266,11 +276,33 @@ def _on_sigterm(signum: int, frame: object) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run a command; its exit status. A reader of stdout that stops early (`| head`) ends
+    it quietly, as SIGPIPE ends other tools: status 141, no traceback."""
+    import os
+
+    try:
+        try:
+            return _main(argv)
+        finally:
+            sys.stdout.flush()  # here, where a reader gone is caught, not at exit
+    except BrokenPipeError:
+        # stdout to /dev/null, so that Python's own flush at exit finds no pipe to fail on
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
+
+
+def _main(argv: list[str] | None) -> int:
     import signal
 
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # said by the subcommand, whose --help lists its options
+        parser.commands[args.command].error(f"unrecognized arguments: {' '.join(extra)}")
     single_threaded_blas()
     reuse_freed_memory()
+    # Ctrl-C as Python has it, also where the shell started the command in the background
+    # with SIGINT ignored: `kill -INT` stops it as Ctrl-C does
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         summary = run(args)
@@ -279,8 +311,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt as exc:
         terminated = isinstance(exc, _Terminated)
-        print(f"lidar-obstacles {args.command}: {'terminated' if terminated else 'interrupted'}",
-              file=sys.stderr)
+        detail = f" ({exc})" if str(exc) else ""  # what was done, `play`'s count
+        print(f"lidar-obstacles {args.command}: "
+              f"{'terminated' if terminated else 'interrupted'}{detail}", file=sys.stderr)
         return 143 if terminated else 130
     from lidar_obstacles.ros.offline import write_json
 

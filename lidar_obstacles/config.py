@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping, TypeVar
 
 from lidar_obstacles.errors import ConfigError
-from lidar_obstacles.io.atomic import atomic_write_text
+from lidar_obstacles.io.atomic import YAML, atomic_write_text
 
 T = TypeVar("T")
 
@@ -681,9 +681,11 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str, *,
     if not isinstance(data, Mapping):
         raise ConfigError(f"params file {path}: expected a mapping at the top")
     updates: dict[str, Any] = {}
+    ours = False  # a section for any node of this package
     for key, value in data.items():
         key_s = str(key).lstrip("/")
         matches = key_s in ("**", node_name, "*") or key_s.endswith("/" + node_name)
+        ours |= key_s in ("**", "*") or key_s.rsplit("/", 1)[-1] in NODE_CONFIGS
         if isinstance(value, Mapping) and "ros__parameters" in value:
             params = value["ros__parameters"] or {}
             if not isinstance(params, Mapping):
@@ -696,6 +698,11 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str, *,
                     raise ConfigError(f"params file {path}: {exc}") from None
         else:
             raise ConfigError(f"params file {path}: '{key}' has no ros__parameters")
+    # A file may hold other packages' nodes too, but one with none of ours is a misspelling
+    # (`obstacle_detektor:`) that would otherwise run on the defaults without a word.
+    if data and not ours:
+        raise ConfigError(f"params file {path}: no section for {', '.join(NODE_CONFIGS)} "
+                          f"or /** (found '{next(iter(data))}')")
     known = {p.name for p in params_of(cls)}
     # A shared file may carry the other node's parameters; only names no node knows are errors.
     all_known = {p.name for c in NODE_CONFIGS.values() for p in params_of(c)}
@@ -782,7 +789,7 @@ def write_config_files(folder: str | Path) -> list[Path]:
         header = (f"# Parameters of `{node}`, generated from lidar_obstacles/config.py\n"
                   f"# (python -m lidar_obstacles.config). Each line: default, then\n"
                   f"# description [unit] and range. Load with --ros-args --params-file.\n")
-        atomic_write_text(path, header + dump_ros_yaml(cls(), f"/**/{node}"))
+        atomic_write_text(path, header + dump_ros_yaml(cls(), f"/**/{node}"), kind=YAML)
         written.append(path)
     return written
 
@@ -792,5 +799,5 @@ if __name__ == "__main__":
     for written_path in write_config_files("config"):
         print(written_path)
     Path("docs").mkdir(exist_ok=True)
-    atomic_write_text("docs/parameters.md", markdown_tables())
+    atomic_write_text("docs/parameters.md", markdown_tables(), kind=None)
     print("docs/parameters.md")

@@ -9,12 +9,19 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from lidar_obstacles.errors import OutputError
+
 
 def run_demo(out: Path, *, scene: str = "mixed", duration: float = 20.0, seed: int = 0) -> dict:
     from lidar_obstacles.evaluate import evaluate
     from lidar_obstacles.ros import offline
 
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out} exists and is not a folder: not overwriting it")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # (a file on the way, no permission)
+        raise OutputError(f"cannot make the output folder {out}: {exc.strerror}") from None
     flight, replayed = out / "flight", out / "replayed"
     dem_tif, report = out / "dem.tif", out / "report"
     steps = [f"1/4 simulating a {duration:g} s flight over the '{scene}' scene",

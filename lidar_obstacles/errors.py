@@ -5,6 +5,8 @@ warning plus a diagnostics count, the CLI into one line on stderr and exit statu
 """
 from __future__ import annotations
 
+import re
+
 
 class LidarObstaclesError(Exception):
     """Base of every error this package raises on bad input."""
@@ -26,10 +28,24 @@ class LasError(LidarObstaclesError):
     """A LAS/LAZ file that cannot be read or has no points."""
 
 
+class OutputError(LidarObstaclesError):
+    """An output path that holds something else (a folder, a file of another kind), which
+    is the user's data and not replaced."""
+
+
+# A number in an error message: 8, -5, 25,000,000, 1.5, 1e+15 (not the 32 of FLOAT32).
+_NUMBER = re.compile(r"(?<!\w)\d+(?:[.,]\d+)*(?:[eE][-+]?\d+)?")
+_DETAIL = re.compile(r" ?\([^()]+\)")  # an innermost parenthesis and the space before it
+
+
 def reason_key(message: str) -> str:
-    """The kind of an error, for counting rejected clouds by reason: its message up to the
-    first detail (": ..." or " (...)"), at most 80 characters. "cloud has no 'z' field
-    (fields: x, y)" counts as "cloud has no 'z' field"."""
-    cut = min((i for i in (message.find(": "), message.find(" (")) if i > 0),
-              default=len(message))
-    return message[:cut][:80]
+    """The kind of an error, for counting rejected clouds by reason: its message without
+    its details (a parenthesis, anything after ": "), every number as N, at most 80
+    characters. The keys are the /diagnostics keys `dropped: <reason>` and replay's JSON
+    keys, so they must not grow with the clouds: "cloud has 4407 points, more than
+    input.max_points=100" counts as "cloud has N points, more than input.max_points=N",
+    "cloud has no 'z' field (fields: x, y)" as "cloud has no 'z' field"."""
+    kind, found = message, 1
+    while found:  # nested ones from the inside out
+        kind, found = _DETAIL.subn("", kind)
+    return _NUMBER.sub("N", kind.split(": ", 1)[0])[:80]

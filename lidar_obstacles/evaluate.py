@@ -7,15 +7,19 @@ No ROS install is needed: bags are decoded with rosbags.
 """
 from __future__ import annotations
 
+import logging
+import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from lidar_obstacles.config import DemBuilderConfig, NodeInputConfig, ObstacleDetectorConfig
-from lidar_obstacles.errors import BagError, CloudFormatError, LidarObstaclesError
+from lidar_obstacles.errors import BagError, CloudFormatError, LidarObstaclesError, reason_key
+
+log = logging.getLogger(__name__)
 
 LAS_SUFFIXES = (".las", ".laz")
 ISPRS_SAMPLES = ("11", "12", "21", "22", "23", "24", "31", "41", "42", "51", "52", "53", "54",
@@ -44,6 +48,7 @@ class LabelledInput:
     kind: str  # "las", "labelled_bag" or "replay_bag"
     clouds: list[LabelledCloud]
     crs: str = ""
+    reject_reasons: dict[str, int] = field(default_factory=dict)  # clouds skipped, by reason
 
     @property
     def n_points(self) -> int:
@@ -69,7 +74,8 @@ def load_input(path: str | Path, *, topic: str | None = None,
     ObstacleDetectorConfig()): with `use_odometry`, moved into the odometry frame by the
     pose nearest in time (a cloud with none within `odometry_max_age` is skipped, as the
     node drops it); with an odometry topic, the vehicle's position comes with each cloud
-    (the clearance grid is centred on it)."""
+    (the clearance grid is centred on it). A malformed cloud is skipped and counted in
+    `reject_reasons`, as `replay` does."""
     cfg = cfg if cfg is not None else ObstacleDetectorConfig()
     path = Path(path)
     if path.suffix.lower() in LAS_SUFFIXES:
@@ -78,14 +84,20 @@ def load_input(path: str | Path, *, topic: str | None = None,
         las = read_las(path)
         crs = f"EPSG:{las.epsg}" if las.epsg else las.crs_wkt
         return LabelledInput(path.name, "las", [_from_points(las.points, 0.0)], crs)
+    from tqdm import tqdm
+
     from lidar_obstacles.io.bags import BagReader, read_crs
     from lidar_obstacles.io.pointcloud2 import read_points
 
+    rejected: dict[str, int] = {}
     with BagReader(path) as reader:
         topics = {t.topic: t for t in reader.topics()}
         if "/ground" in topics and "/obstacles" in topics and topic is None:
             by_stamp: dict[int, list[np.ndarray]] = {}
-            for rec in reader.records(["/ground", "/obstacles"]):
+            outputs = ["/ground", "/obstacles"]
+            for rec in tqdm(reader.records(outputs), total=reader.count(outputs),
+                            desc=f"read {path.name}", unit="msg", disable=None,
+                            file=sys.stderr):
                 msg = reader.deserialize(rec)
                 stamp = int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
                 by_stamp.setdefault(stamp, []).append(np.asarray(read_points(msg)))
@@ -95,44 +107,69 @@ def load_input(path: str | Path, *, topic: str | None = None,
                 raise CloudFormatError(f"{path}: /obstacles has no 'class' field")
             kind = "replay_bag"
         else:
-            clouds = _labelled_clouds(reader, topic, cfg)
+            clouds = _labelled_clouds(reader, topic, cfg, rejected)
             kind = "labelled_bag"
         crs = read_crs(reader)
     if not clouds:
         raise BagError(f"bag {path} has no clouds")
-    return LabelledInput(path.name, kind, clouds, crs)
+    return LabelledInput(path.name, kind, clouds, crs, rejected)
 
 
-def _labelled_clouds(reader, topic: str | None, cfg: NodeInputConfig) -> list[LabelledCloud]:
-    """The clouds of a labelled bag, in bag order, prepared as the node prepares them."""
+def _labelled_clouds(reader, topic: str | None, cfg: NodeInputConfig,
+                     rejected: dict[str, int]) -> list[LabelledCloud]:
+    """The clouds of a labelled bag, in bag order, prepared as the node prepares them. The
+    node drops a cloud it cannot place or parse, and so do these, counting them by reason
+    in `rejected`; one warning names the first malformed one, for the user to find it. A
+    BagError when none is left."""
     from lidar_obstacles.io.bags import ODOMETRY
     from lidar_obstacles.ros.node_base import PoseBuffer
-    from lidar_obstacles.ros.stages import pose_of_odometry, prepare
+    from lidar_obstacles.ros.offline import NO_POSE
+    from lidar_obstacles.ros.stages import moving_frame_warning, pose_of_odometry, prepare
 
     cloud_topic = reader.pointcloud_topic(topic)
     odom = [t.topic for t in reader.topics() if t.msgtype == ODOMETRY]
     poses = PoseBuffer()
-    clouds, unplaced = [], 0
+    clouds, seen, malformed, first = [], 0, 0, ""
+    moving: str | None = None  # the moving-frame warning, judged at the first pose
     for rec in reader.records([cloud_topic, *odom]):
         msg = reader.deserialize(rec)
         if rec.topic in odom:
             poses.add(pose_of_odometry(msg))
             continue
+        seen += 1
         stamp_ns = int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
         pose = poses.nearest(stamp_ns, cfg.odometry_max_age)
+        if moving is None and pose is not None:
+            moving = moving_frame_warning(msg.header.frame_id, pose, cfg.use_odometry) or ""
+            if moving:
+                log.warning("evaluate: %s", moving)
         if cfg.use_odometry and pose is None:
-            unplaced += 1  # the node drops a cloud it cannot place
+            rejected[NO_POSE] = rejected.get(NO_POSE, 0) + 1
             continue
-        prep = prepare(msg, keep_non_finite=False, max_points=cfg.input.max_points,
-                       pose=pose, transform=cfg.use_odometry)
-        cloud = _from_points(prep.points, stamp_ns * 1e-9)
+        try:
+            prep = prepare(msg, keep_non_finite=False, max_points=cfg.input.max_points,
+                           pose=pose, transform=cfg.use_odometry)
+            cloud = _from_points(prep.points, stamp_ns * 1e-9)
+        except CloudFormatError as exc:
+            key = reason_key(str(exc))
+            rejected[key] = rejected.get(key, 0) + 1
+            malformed += 1
+            first = first or (f"cloud {seen} (stamp {stamp_ns // 10**9}."
+                              f"{stamp_ns % 10**9:09d} s): {exc}")
+            continue
         cloud.predicted = None  # a labelled input bag: the pipeline runs on it
         cloud.vehicle = pose.position if pose is not None else None
         clouds.append(cloud)
-    if unplaced and not clouds:
-        raise BagError(f"use_odometry is true but none of the {unplaced} clouds on "
+    if not clouds and malformed:
+        raise BagError(f"none of the {seen} clouds on {cloud_topic} can be evaluated: "
+                       f"{malformed} malformed, the first {first}")
+    if not clouds and rejected:
+        raise BagError(f"use_odometry is true but none of the {seen} clouds on "
                        f"{cloud_topic} has an odometry pose within "
                        f"{cfg.odometry_max_age} s of its stamp")
+    if malformed:
+        log.warning("evaluate: skipped %d malformed of the %d clouds on %s, the first %s",
+                    malformed, seen, cloud_topic, first)
     return clouds
 
 
@@ -147,8 +184,6 @@ def run_detector(inp: LabelledInput, cfg: ObstacleDetectorConfig, *,
     latencies = []
     clouds = inp.clouds
     if progress:
-        import sys
-
         from tqdm import tqdm
 
         clouds = tqdm(clouds, desc=f"detect {inp.name}", disable=None, file=sys.stderr)
@@ -164,9 +199,16 @@ def run_detector(inp: LabelledInput, cfg: ObstacleDetectorConfig, *,
 
 
 def _concat(inp: LabelledInput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    xyz = np.concatenate([c.xyz for c in inp.clouds])
-    ref = np.concatenate([c.reference for c in inp.clouds])
-    pred = np.concatenate([c.predicted for c in inp.clouds])  # type: ignore[misc]
+    """xyz (N, 3), reference and predicted classes (N,) of every cloud, less the stray
+    points far from their cloud (:func:`far_points`): a blunder kilometres off, which
+    the detector calls noise, would stretch the blocks, the DEM and the maps over the
+    distance (at 1e20 m the maps could not be drawn)."""
+    from lidar_obstacles.core.ground import far_points
+
+    near = np.concatenate([~far_points(c.xyz) for c in inp.clouds])
+    xyz = np.concatenate([c.xyz for c in inp.clouds])[near]
+    ref = np.concatenate([c.reference for c in inp.clouds])[near]
+    pred = np.concatenate([c.predicted for c in inp.clouds])[near]  # type: ignore[misc]
     return xyz, ref, pred
 
 
@@ -208,6 +250,8 @@ def evaluate(src: str | Path, *, params_file: str | Path | None = None,
     """All the figures of `lidar-obstacles evaluate` for one input (JSON-ready dict)."""
     from lidar_obstacles.core.metrics import evaluate_classes, jsonable, latency_stats
 
+    if report_dir is not None:
+        _check_report_folder(Path(report_dir))  # before the work, not after it
     det_cfg, dem_cfg = _configs(params_file)
     inp = load_input(src, topic=topic, cfg=det_cfg)
     latencies: list[float] = []
@@ -215,7 +259,10 @@ def evaluate(src: str | Path, *, params_file: str | Path | None = None,
         latencies = run_detector(inp, det_cfg, progress=True)
     xyz, ref, pred = _concat(inp)
     metrics: dict[str, Any] = {"source": str(src), "kind": inp.kind,
-                               "clouds": len(inp.clouds)}
+                               "clouds": len(inp.clouds),
+                               "rejected": sum(inp.reject_reasons.values()),
+                               "reject_reasons": inp.reject_reasons,
+                               "far_points": inp.n_points - len(ref)}
     metrics.update(evaluate_classes(ref, pred, xy=xyz[:, :2], blocks=blocks))
     dem = None
     if with_dem:
@@ -244,18 +291,40 @@ def _configs(params_file) -> tuple[ObstacleDetectorConfig, DemBuilderConfig]:
 
 def write_evaluation_report(out: Path, metrics: dict, xyz, ref, pred, dem, latencies,
                             name: str) -> Path:
-    """PNGs, metrics.json and a self-contained report.html in `out`."""
+    """PNGs, metrics.json and a self-contained report.html in folder `out`, all or none: an
+    interrupted report left some of its files and no report.html. Written into a folder
+    beside `out` that replaces it once complete (:func:`atomic_folder`), when `out` is not
+    there, empty or an earlier report; LidarObstaclesError when it is something else.
+    Returns the path of report.html."""
+    from lidar_obstacles.io.atomic import atomic_folder
+
+    _check_report_folder(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_folder(out, lambda tmp: _report_files(tmp, metrics, xyz, ref, pred, dem, latencies,
+                                                 name))
+    return out / "report.html"
+
+
+def _check_report_folder(out: Path) -> None:
+    """LidarObstaclesError unless `out` is free for a report: not there, an empty folder or
+    an earlier report. Anything else is the user's, which the report would replace."""
+    if out.exists() and not (out.is_dir() and (not any(out.iterdir())
+                                               or (out / "report.html").is_file())):
+        raise LidarObstaclesError(f"{out} exists and is not a report: not overwriting it")
+
+
+def _report_files(out: Path, metrics: dict, xyz, ref, pred, dem, latencies, name: str) -> None:
+    """The files of :func:`write_evaluation_report`, into the existing folder `out`."""
     from lidar_obstacles import report
 
-    out.mkdir(parents=True, exist_ok=True)
     images: dict[str, Path] = {}
     images["confusion matrix"] = report.confusion_png(
         metrics["confusion"]["matrix"], metrics["confusion"]["labels"], out / "confusion.png")
     # Maps need an area: a cloud of one point, or of one spot or line, has none to draw.
     if len(xyz) < 3 or not (np.ptp(xyz[:, 0]) > 0 and np.ptp(xyz[:, 1]) > 0):
-        return report.write_report(out, metrics, images,
-                                   title=f"lidar_obstacles evaluation: {name}",
-                                   notes="The points span no area: no maps drawn.")
+        report.write_report(out, metrics, images, title=f"lidar_obstacles evaluation: {name}",
+                            notes="The points span no area: no maps drawn.")
+        return
     if metrics.get("blocks"):
         b = metrics["blocks"]
         grid = np.array([[np.nan if v is None else v for v in row] for row in b["kappa"]])
@@ -280,7 +349,7 @@ def write_evaluation_report(out: Path, metrics: dict, xyz, ref, pred, dem, laten
                     title="DEM error: predicted minus reference ground")
     if latencies:
         images["latency"] = report.latency_histogram_png(latencies, out / "latency.png")
-    return report.write_report(out, metrics, images, title=f"lidar_obstacles evaluation: {name}")
+    report.write_report(out, metrics, images, title=f"lidar_obstacles evaluation: {name}")
 
 
 def benchmark_isprs(folder: str | Path, *, params_file: str | Path | None = None) -> dict:

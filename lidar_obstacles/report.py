@@ -23,7 +23,7 @@ import numpy as np
 
 from lidar_obstacles.core.metrics import jsonable, latency_stats
 from lidar_obstacles.errors import CloudFormatError, LidarObstaclesError
-from lidar_obstacles.io.atomic import atomic_write, atomic_write_text
+from lidar_obstacles.io.atomic import HTML, JSON, PNG, atomic_write, atomic_write_text
 
 DPI = 150
 """Resolution of every PNG; a figure of W x H inches is (W * DPI) x (H * DPI) pixels."""
@@ -75,7 +75,7 @@ def _save(fig, path: str | Path) -> Path:
     """Write the figure as PNG at :data:`DPI`, atomically; returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    return atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=DPI))
+    return atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=DPI), kind=PNG)
 
 
 def _offset(values: np.ndarray) -> float:
@@ -911,5 +911,5 @@ def write_report(
         + "</body></html>\n"
     )
     text = json.dumps(clean, indent=2, allow_nan=False) + "\n"
-    atomic_write_text(out / "metrics.json", text)
-    return atomic_write_text(out / "report.html", doc)
+    atomic_write_text(out / "metrics.json", text, kind=JSON)
+    return atomic_write_text(out / "report.html", doc, kind=HTML)

@@ -31,7 +31,7 @@ from lidar_obstacles.config import (
 )
 from lidar_obstacles.errors import ConfigError
 from lidar_obstacles.evaluate import LabelledInput, _concat, load_input, run_detector
-from lidar_obstacles.io.atomic import atomic_write_text
+from lidar_obstacles.io.atomic import YAML, atomic_write_text, check_replaceable
 
 EARLY_STOP_MARGIN = 0.05  # a candidate this far below the best on the first input stops
 SAFETY_PENALTY = 10.0  # score lost per unit share of wire/tower points put in ground
@@ -149,6 +149,7 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
         raise ConfigError(f"cannot write the params file {out}: "
                           + ("it is a folder" if out.is_dir() else
                              f"folder {out.parent} does not exist"))
+    check_replaceable(out, YAML)
     dims = search_space(space_file)
     start = (load_params_file(start_file, ObstacleDetectorConfig, "obstacle_detector")
              if start_file else ObstacleDetectorConfig())
@@ -182,7 +183,7 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
                 for i, inp in enumerate(inputs):
                     scores.append(score_input(inp, cfg, objective,
                                               deadline=t_end if trials else None)["score"])
-                    if i == 0:
+                    if i == 0 and len(inputs) > 1:  # (with one input it is complete)
                         if scores[0] < best_first - EARLY_STOP_MARGIN:
                             stopped = True
                             break
@@ -207,7 +208,7 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
     try:
         atomic_write_text(out, "# Written by `lidar-obstacles tune`: the best candidate of "
                           f"{len(trials)} on {', '.join(i.name for i in inputs)}.\n"
-                          + dump_ros_yaml(best_cfg, "/**"))
+                          + dump_ros_yaml(best_cfg, "/**"), kind=YAML)
     except OSError as exc:
         raise ConfigError(f"cannot write the params file {out}: {exc}") from None
     complete = [t for t in trials if not t["stopped_early"]]
@@ -230,7 +231,13 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
         "inputs": [i.name for i in inputs],
     }
     if held_out:
-        summary["validation"] = {"inputs": [i.name for i in held_out],
-                                 "start_score": _mean_score(held_out, start, objective),
-                                 "best_score": _mean_score(held_out, best_cfg, objective)}
+        check = {"inputs": [i.name for i in held_out],
+                 "start_score": _mean_score(held_out, start, objective),
+                 "best_score": _mean_score(held_out, best_cfg, objective)}
+        check["improved"] = check["best_score"] >= check["start_score"]
+        summary["validation"] = check
+        if not check["improved"]:
+            print(f"tune: warning: the best candidate scores {check['best_score']:.4f} on the "
+                  f"held-out inputs, the start {check['start_score']:.4f}: it may fit only "
+                  f"the tuning inputs ({out} is written all the same)", file=sys.stderr)
     return summary

@@ -132,7 +132,7 @@ def test_bad_bags_raise_one_clear_error(tmp_path):
     with pytest.raises(BagError, match="not found"):
         BagReader(tmp_path / "missing").__enter__()
     (tmp_path / "empty").mkdir()
-    with pytest.raises(BagError, match="cannot open bag"):
+    with pytest.raises(BagError, match="cannot open bag .*: not a bag: neither a rosbag2"):
         BagReader(tmp_path / "empty").__enter__()
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"this is not a bag" * 100)
@@ -146,6 +146,14 @@ def test_bad_bags_raise_one_clear_error(tmp_path):
     with pytest.raises(BagError):
         with BagReader(cut) as reader:
             list(reader.records())
+    # An unfinished recording: the folder's mcap cut short, its footer gone.
+    import shutil
+
+    shutil.copytree(tmp_path / "full", tmp_path / "unfinished")
+    short = tmp_path / "unfinished" / mcap.name
+    short.write_bytes(mcap.read_bytes()[: mcap.stat().st_size * 2 // 3])
+    with pytest.raises(BagError, match="mcap file ends early .*mcap recover"):
+        BagReader(tmp_path / "unfinished").__enter__()
     # A bag without clouds.
     with BagWriter(tmp_path / "odom_only") as bag:
         bag.add_topic("/odom", "nav_msgs/msg/Odometry")

@@ -2,10 +2,14 @@
 from __future__ import annotations
 
 import argparse
+import os
 import re
+import subprocess
+import sys
 
 import pytest
 
+from conftest import REPO
 from lidar_obstacles.cli import build_parser, main
 
 
@@ -56,3 +60,17 @@ def test_a_malformed_params_file_is_one_line_with_its_position_and_exit_2(tmp_pa
     assert capsys.readouterr().err == (
         f"lidar-obstacles export-dem: error: params file {bad}: line 1, column 12: "
         "expected ',' or ']', but got '<stream end>'\n")
+
+
+@pytest.mark.parametrize("args", [["simulate", "{tmp}/bag", "--duration", "0.1", "--points",
+                                   "100"], ["simulate", "--help"], ["--help"]])
+def test_a_reader_that_stops_early_ends_the_command_quietly(args, tmp_path):
+    # `lidar-obstacles ... | head -c 10`: the pipe is closed before the JSON (or the help)
+    # is written; as SIGPIPE ends other tools, status 141 (--help: argparse's own 0)
+    read, write = os.pipe()
+    os.close(read)
+    proc = subprocess.run([sys.executable, "-m", "lidar_obstacles.cli",
+                           *(a.format(tmp=tmp_path) for a in args)],
+                          cwd=REPO, stdout=write, stderr=subprocess.PIPE, text=True, timeout=120)
+    os.close(write)
+    assert proc.stderr == "" and proc.returncode == (0 if "--help" in args else 141)

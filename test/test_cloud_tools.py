@@ -70,6 +70,47 @@ def test_simplify_and_features_of_a_bag(sim_bag, tmp_path):
     assert 0 < f["points_out"] < f["points_in"]  # buildings and towers have edges
 
 
+def test_simplify_counts_malformed_clouds_by_kind_and_keeps_the_last_error(sim_bag, tmp_path):
+    from test_evaluate_cli import _cut_short
+
+    _cut_short(sim_bag, tmp_path / "cut", {0, 2})
+    s = run_cli("simplify", tmp_path / "cut", tmp_path / "simple")
+    assert s["messages"] == 1 and s["rejected"] == 2
+    assert s["reject_reasons"] == {"data has N bytes, expected row_step N * height N = N": 2}
+    assert s["last_reject"].startswith("data has ") and s["last_reject"][9].isdigit()
+
+
+def test_stray_points_are_no_features_and_raise_no_warnings(sim_bag, tmp_path):
+    """50 points of each cloud at (1e30, 1e30, 1e30) m (a bad coordinate): left out of the
+    feature search, quietly (numpy overflowed on them), in a bag and in a whole survey."""
+    import warnings
+
+    from lidar_obstacles.config import FeaturesConfig
+    from lidar_obstacles.io.bags import POINTCLOUD2, BagWriter, typestore
+    from lidar_obstacles.io.pointcloud2 import read_points
+    from lidar_obstacles.ros.cloud_tools import tiled_features
+
+    bag = tmp_path / "strays"
+    with BagReader(sim_bag) as reader, BagWriter(bag) as out:
+        out.add_topic("/points", POINTCLOUD2)
+        for rec in reader.records(["/points"]):
+            msg = reader.deserialize(rec)
+            points = np.array(read_points(msg))
+            for axis in "xyz":
+                points[axis][:50] = 1e30
+            msg.data = np.frombuffer(points.tobytes(), np.uint8)
+            out.write("/points", rec.stamp_ns, bytes(typestore().serialize_cdr(msg, POINTCLOUD2)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        summary = run_cli("features", bag, tmp_path / "feat")
+        assert summary["points_out"] > 0
+        assert all((c["z"] < 1e3).all() for c in clouds(tmp_path / "feat", "/points_features"))
+        survey = read_las(data_file(SAMPLE)).xyz
+        survey[:5] = 1e30
+        feature = tiled_features(survey, cfg=FeaturesConfig(), rng=np.random.default_rng(0))
+        assert not feature[:5].any() and feature[5:].any()
+
+
 def test_features_of_a_las_file(tmp_path):
     src = data_file(SAMPLE)
     summary = run_cli("features", src, tmp_path / "edges.laz")
@@ -101,11 +142,15 @@ def test_tiled_features_match_the_whole_cloud_inside_the_tiles():
     (("simplify", "{src}", "{tmp}/out.bag"), "needs a .las or .laz output"),
     (("features", "{tmp}/missing.laz", "{tmp}/out.laz"), "not found"),
     (("simplify", "{tmp}/nobag", "{tmp}/out"), "nobag"),
+    (("simplify", "{tmp}/nonexistent_path", "{tmp}/o.laz"), "input not found: "),
+    (("simplify", "{src}", "{tmp}/notes.laz"), "notes.laz exists and is not a LAS/LAZ file"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args, expected, tmp_path):
     src = data_file(SAMPLE)
+    (tmp_path / "notes.laz").write_text("precious\n")  # not a LAS/LAZ file: never replaced
     proc = cli_subprocess(*[a.format(src=src, tmp=tmp_path) for a in args])
     assert proc.returncode == 2, proc.stderr
+    assert (tmp_path / "notes.laz").read_text() == "precious\n"
     lines = [x for x in proc.stderr.splitlines() if x.strip()]
     assert len(lines) == 1 and expected in lines[0], proc.stderr
     assert not any(p.name.startswith(".out") for p in tmp_path.iterdir())

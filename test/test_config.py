@@ -95,6 +95,15 @@ def test_params_file_forms(tmp_path):
         load_params_file(bad, ObstacleDetectorConfig, "obstacle_detector")
     with pytest.raises(ConfigError, match="not found"):
         load_params_file(tmp_path / "missing.yaml", ObstacleDetectorConfig, "x")
+    # a misspelt node is no node of ours; another package's node beside ours is fine
+    typo = tmp_path / "typo.yaml"
+    typo.write_text("obstacle_detektor:\n  ros__parameters:\n    tiling.size: 30.0\n")
+    with pytest.raises(ConfigError, match="no section for obstacle_detector.*obstacle_detektor"):
+        load_params_file(typo, ObstacleDetectorConfig, "obstacle_detector")
+    shared = tmp_path / "shared.yaml"
+    shared.write_text("flight_stack:\n  ros__parameters:\n    rate: 5\n"
+                      "/uav1/obstacle_detector:\n  ros__parameters:\n    tiling.size: 30.0\n")
+    assert load_params_file(shared, ObstacleDetectorConfig, "obstacle_detector").tiling.size == 30
     # a value bad for the other node is bad input for this one too (one shared file)
     magic = tmp_path / "magic.yaml"
     magic.write_text("/**:\n  ros__parameters:\n    ground.method: magic\n")

@@ -83,7 +83,42 @@ def test_a_stray_point_far_away_is_noise_and_costs_nothing(stray):
     assert not dem.ground_of(xyz, stamp=0.0, intensity=None)[-1]
 
 
+STRAY_Z = [5000.0, -5000.0, 1e12, 1e20, 3e38]
+
+
+@pytest.mark.parametrize("z", STRAY_Z)
+def test_stray_points_far_above_or_below_the_cloud_are_noise(z):
+    # 50 returns 5 km up were a wire 5003 m above ground, 5 km down two of them ground
+    xyz = _cloud(0, 3000)
+    xyz[:50, 2] = z
+    res = ObstacleDetector(DET).process(xyz)
+    assert (res.classes[:50] == 7).all() and not res.ground[:50].any()
+    assert np.isnan(res.height_above_ground[:50]).all()
+    alone = ObstacleDetector(DET).process(xyz[50:])
+    assert np.array_equal(res.classes[50:], alone.classes)
+    for source in ("detector", "kmeans"):
+        dem = DemPipeline(replace(DemBuilderConfig(), {"dem.ground_source": source}))
+        ground = dem.ground_of(xyz, stamp=0.0, intensity=None)
+        assert not ground[:50].any() and ground[50:].mean() > 0.5, source
+
+
+def test_far_in_z_leaves_tall_structures_and_steep_terrain_alone():
+    from lidar_obstacles.core.ground import far_points
+
+    xyz = _cloud(0, 3000)
+    xyz[:5, 2] = 900.0  # above the tallest building there is (828 m)
+    assert not far_points(xyz).any()
+    xyz[:5, 2] = 2000.0
+    assert far_points(xyz)[:5].all()
+    # a 2 km rise (4:1) at the edge of a 2 km footprint, three quarters of it flat
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 2000, (8000, 2))
+    z = np.where(xy[:, 0] > 1500, (xy[:, 0] - 1500) * 4.0, 0.0)  # 2 km of rise
+    assert not far_points(np.column_stack([xy, z])).any()
+
+
 def test_far_points_keep_every_point_of_the_real_data():
+    # the farthest point beyond 3 IQRs of its cloud's heights: 61 m (samp31), 42 m (AHN)
     from lidar_obstacles.core.ground import far_points
     from lidar_obstacles.io.las import read_las
 
@@ -93,7 +128,10 @@ def test_far_points_keep_every_point_of_the_real_data():
     if not files:
         pytest.skip(f"no data in {DATA}")
     for path in files:
-        assert not far_points(read_las(path).xyz[:, :2]).any(), path.name
+        xyz = read_las(path).xyz
+        assert not far_points(xyz).any(), path.name
+        # and in the scanner's order, as las2bag's slices of a survey come
+        assert not any(far_points(xyz[i:i + 2000]).any() for i in range(0, len(xyz), 2000))
 
 
 def test_a_cloud_too_wide_for_the_raster_is_refused_with_the_reason():
@@ -101,6 +139,30 @@ def test_a_cloud_too_wide_for_the_raster_is_refused_with_the_reason():
     a, b = _cloud(0, 20000), _cloud(1, 20000) + [8000.0, 8000.0, 0.0]
     with pytest.raises(CloudFormatError, match="spans .* m, more than .* cells"):
         ObstacleDetector(DET).process(np.vstack([a, b]))
+
+
+HUGE = {  # none has a stray point to drop: the cloud itself is the problem
+    "two points 1e15 m apart": (np.array([[0.0, 0.0, 0.0], [1e15, 0.0, 0.0]]), "spans"),
+    "halves 1e15 m apart": (np.vstack([_cloud(0, 2000), _cloud(1, 2000) + [1e15, 0, 0]]),
+                            "spans"),
+    "halves 1e15 m apart in z": (np.vstack([_cloud(0, 2000), _cloud(1, 2000) + [0, 0, 1e15]]),
+                                 r"spans 1e\+15 m in z"),
+    "halves 3.4e38 m either side": (np.vstack([_cloud(0, 2000) - [3.4e38, 0, 0],
+                                               _cloud(1, 2000) + [3.4e38, 0, 0]]), "spans"),
+    "a cloud 1e20 m up": (_cloud(0, 3000) + [0, 0, 1e20], r"lies 1e\+20 m from"),
+}
+
+
+@pytest.mark.parametrize("method", ["hybrid", "tin", "ransac", "kmeans"])
+@pytest.mark.parametrize("name", sorted(HUGE))
+def test_a_cloud_too_big_for_int64_cells_is_refused_with_the_reason(name, method):
+    # its cell and voxel indices overflowed int64: IndexError, or garbage grids
+    xyz, reason = HUGE[name]
+    with pytest.raises(CloudFormatError, match=f"^the cloud {reason}"):
+        if method == "kmeans":
+            DemPipeline(replace(DemBuilderConfig(), {"dem.ground_source": "kmeans"})).process(xyz)
+        else:
+            ObstacleDetector(replace(DET, {"ground.method": method})).process(xyz)
 
 
 @pytest.mark.parametrize("window", [1.0, 2.0, 2.9])
@@ -111,10 +173,24 @@ def test_small_ground_windows_work(window):
 
 
 def test_rejected_clouds_are_counted_by_the_kind_of_their_error():
+    # the kinds are /diagnostics and replay keys: one per size had them grow without end
     from lidar_obstacles.errors import reason_key
 
-    assert reason_key("cloud has no 'z' field (fields: x, y)") == "cloud has no 'z' field"
+    assert reason_key("cloud has no 'z' field (fields: ('x', 'y'))") == "cloud has no 'z' field"
     assert reason_key("cloud has 3000000 points, more than input.max_points=2000000") == \
-        "cloud has 3000000 points, more than input.max_points=2000000"
-    assert reason_key("point_step 8: smaller than its fields") == "point_step 8"
+        reason_key("cloud has 4407 points, more than input.max_points=100") == \
+        "cloud has N points, more than input.max_points=N"
+    assert reason_key("data has 106552 bytes, expected row_step 106559 * height 1 = 106559") \
+        == "data has N bytes, expected row_step N * height N = N"
+    assert reason_key("fields 'x' (bytes 0..3) and 'y' (from byte 2) overlap") == \
+        "fields 'x' and 'y' overlap"  # not "fields 'x'"
+    assert reason_key("the cloud spans 5000 x 8060 m, more than 25,000,000 cells of "
+                      "ground.cell = 1.0 m: cut it into tiles (las2bag --tile-size)") == \
+        "the cloud spans N x N m, more than N cells of ground.cell = N m"
+    assert reason_key("the cloud lies 1e+20 m from the frame's origin, more than 1e+08 m: "
+                      "its coordinates are not a scene") == \
+        "the cloud lies N m from the frame's origin, more than N m"
+    assert reason_key("field 'x' must be a single FLOAT32 or FLOAT64, got float16") == \
+        "field 'x' must be a single FLOAT32 or FLOAT64, got float16"
+    assert reason_key("point_step 8: smaller than its fields") == "point_step N"
     assert len(reason_key("x" * 200)) == 80

@@ -93,6 +93,9 @@ def test_degenerate_ground_gives_reason_not_crash(method):
 def test_build_dem_rejects_huge_grids_and_bad_shapes():
     with pytest.raises(ConfigError):
         build_dem(np.array([[0.0, 0.0, 0.0], [1e5, 1e5, 0.0]]), cfg=_cfg())
+    # beyond int64: the count said "DEM of -9223372036854775762 x ... cells"
+    with pytest.raises(ConfigError, match=r"^DEM of 1 x 6e\+30 cells exceeds"):
+        build_dem(np.array([[-3e30, 0.0, 0.0], [3e30, 0.0, 0.0]]), cfg=_cfg())
     with pytest.raises(CloudFormatError):
         build_dem(np.zeros((5, 2)), cfg=_cfg())
 

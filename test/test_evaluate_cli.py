@@ -2,14 +2,18 @@
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from conftest import DATA, REPO, data_file
-from test_offline import run_cli
+from lidar_obstacles.evaluate import LabelledInput
+from test_offline import cli_subprocess, run_cli
 
 
 def test_evaluate_replay_output_and_report(tmp_path):
@@ -57,6 +61,118 @@ def test_evaluate_a_sensor_frame_bag_through_its_odometry(tmp_path):
         assert np.allclose(a.xyz.min(axis=0), b.xyz.min(axis=0), atol=0.01)
         assert np.allclose(a.xyz.max(axis=0), b.xyz.max(axis=0), atol=0.01)
         assert a.vehicle is not None and np.allclose(a.vehicle, b.vehicle)
+
+
+def _cut_short(src, out, which) -> None:
+    """A copy of bag src whose clouds numbered in `which` (from 0) lose their last 7 bytes."""
+    from lidar_obstacles.io.bags import POINTCLOUD2, BagReader, BagWriter, typestore
+
+    with BagReader(src) as reader, BagWriter(out) as bag:
+        bag.add_topic("/points", POINTCLOUD2)
+        for i, rec in enumerate(reader.records(["/points"])):
+            msg = reader.deserialize(rec)
+            if i in which:
+                msg.data = msg.data[:-7]
+            bag.write("/points", rec.stamp_ns, bytes(typestore().serialize_cdr(msg, POINTCLOUD2)))
+
+
+def test_evaluate_skips_and_counts_a_malformed_cloud(tmp_path, caplog, capsys):
+    # as replay does; the whole evaluation was refused, naming no message
+    from lidar_obstacles.cli import main
+
+    run_cli("simulate", tmp_path / "f", "--duration", "0.5", "--seed", "1")
+    _cut_short(tmp_path / "f", tmp_path / "one", {2})
+    m = run_cli("evaluate", tmp_path / "one", "--no-dem")
+    assert m["clouds"] == 4 and m["rejected"] == 1
+    assert m["reject_reasons"] == {"data has N bytes, expected row_step N * height N = N": 1}
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert warning.startswith("evaluate: skipped 1 malformed of the 5 clouds on /points, "
+                              "the first cloud 3 (stamp 0.200000000 s): data has ")
+    _cut_short(tmp_path / "f", tmp_path / "all", set(range(5)))
+    capsys.readouterr()
+    assert main(["evaluate", str(tmp_path / "all"), "--no-dem"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lidar-obstacles evaluate: error: none of the 5 clouds on /points "
+                          "can be evaluated: 5 malformed, the first cloud 1 (stamp 0.0")
+    assert len(err.strip().splitlines()) == 1
+
+
+@pytest.fixture(scope="module")
+def replayed(tmp_path_factory):
+    """A replay's output bag: evaluate runs no pipeline on it, only the report."""
+    folder = tmp_path_factory.mktemp("replayed")
+    run_cli("simulate", folder / "f", "--duration", "0.5", "--seed", "1")
+    run_cli("replay", folder / "f", folder / "out", "--no-dem")
+    return folder / "out"
+
+
+def test_an_interrupted_report_leaves_the_folder_as_it_was(replayed, tmp_path, monkeypatch):
+    # it left 4 of its 10 files and no report.html
+    from lidar_obstacles import report
+    from lidar_obstacles.evaluate import evaluate
+
+    from lidar_obstacles.io.atomic import umask
+
+    evaluate(replayed, report_dir=tmp_path / "rep")
+    assert (tmp_path / "rep").stat().st_mode & 0o777 == 0o777 & ~umask()  # as mkdir gives
+    before = {p.name: p.read_bytes() for p in (tmp_path / "rep").iterdir()}
+    assert "report.html" in before and len(before) > 5
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(report, "error_views_png", interrupted)  # midway through the PNGs
+    for folder in ("rep", "new"):
+        with pytest.raises(KeyboardInterrupt):
+            evaluate(replayed, report_dir=tmp_path / folder)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rep"]  # no temporary folder
+    assert {p.name: p.read_bytes() for p in (tmp_path / "rep").iterdir()} == before
+
+
+@pytest.mark.parametrize("sig, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_report_stopped_by_a_signal_leaves_nothing(replayed, tmp_path, sig, status):
+    proc = subprocess.Popen([sys.executable, "-m", "lidar_obstacles.cli", "evaluate",
+                             str(replayed), "--report", str(tmp_path / "rep")], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not list(tmp_path.glob(".rep.*")) and time.monotonic() < deadline:
+        time.sleep(0.01)  # until the report is being written
+    assert proc.poll() is None, "evaluate finished before it could be stopped"
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == status, err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_report_never_replaces_what_is_not_a_report(replayed, tmp_path, capsys):
+    from lidar_obstacles.cli import main
+
+    (tmp_path / "rep").mkdir()
+    (tmp_path / "rep" / "notes.txt").write_text("mine")
+    capsys.readouterr()
+    assert main(["evaluate", str(replayed), "--report", str(tmp_path / "rep")]) == 2
+    assert capsys.readouterr().err == (f"lidar-obstacles evaluate: error: {tmp_path / 'rep'} "
+                                       "exists and is not a report: not overwriting it\n")
+    assert [p.name for p in (tmp_path / "rep").iterdir()] == ["notes.txt"]
+
+
+def test_evaluate_leaves_stray_points_out_of_its_figures(tmp_path):
+    # 50 points at z = 1e20 m broke the maps (exit 1), 50 at x = 3e38 m the DEM's grid
+    from test_offline import _changed_clouds
+
+    def up(points):
+        points["z"][:50] = 1e20
+
+    def aside(points):
+        points["x"][:50] = 3e38
+
+    run_cli("simulate", tmp_path / "f", "--duration", "0.3", "--seed", "1")
+    _changed_clouds(tmp_path / "f", tmp_path / "strays", [up, aside, up])
+    run_cli("replay", tmp_path / "strays", tmp_path / "out", "--no-dem")
+    m = run_cli("evaluate", tmp_path / "out", "--report", tmp_path / "rep")
+    assert m["far_points"] == 150 and m["clouds"] == 3
+    assert m["dem"]["grid"]["rmse_m"] is not None
+    assert (tmp_path / "rep" / "classes.png").stat().st_size > 5000
 
 
 def test_evaluate_las_file():
@@ -112,9 +228,7 @@ def test_tune_improves_a_mistuned_start_and_the_yaml_loads_in_the_node(tmp_path)
 def test_tune_rejects_bad_space(tmp_path):
     space = tmp_path / "space.yaml"
     space.write_text("ransac.distance_threshold: [-1, 2]\n")
-    res = subprocess.run([sys.executable, "-m", "lidar_obstacles.cli", "tune",
-                          str(data_file("isprs/samp51-utm.laz")), "--space", str(space)],
-                         cwd=REPO, capture_output=True, text=True, timeout=120)
+    res = cli_subprocess("tune", data_file("isprs/samp51-utm.laz"), "--space", space)
     assert res.returncode == 2 and "ransac.distance_threshold" in res.stderr
     # bad YAML: where and what, in one line (it said only "while parsing a flow sequence")
     from lidar_obstacles.errors import ConfigError
@@ -155,3 +269,46 @@ def test_evaluate_report_of_a_cloud_without_area(tmp_path, points):
     m = run_cli("evaluate", tmp_path / "spot.las", "--report", tmp_path / "rep")
     assert m["n_points"] == len(pts)
     assert "no maps drawn" in (tmp_path / "rep" / "report.html").read_text()
+
+
+def test_tune_on_one_input_scores_every_candidate_and_warns_when_held_out_is_worse(
+        tmp_path, monkeypatch, capsys):
+    """With one input a candidate is scored in full, so it counts in the sensitivity
+    (early stopping is for the inputs after the first); a best candidate that does worse
+    than the start on the held-out inputs is written with a warning."""
+    from lidar_obstacles import tune
+
+    monkeypatch.setattr(tune, "load_input", lambda path, cfg: LabelledInput(
+        Path(path).name, "las", [], None))
+    # the first input: the start scores 0.9, the others far lower, all but the last
+    # candidate worse than it; the held-out input prefers the start
+    scores = iter([0.9] + [0.5 + 0.01 * i for i in range(4)] + [0.95])
+
+    def score(inp, cfg, objective, deadline=None):
+        held = inp.name == "held.laz"
+        value = (0.8 if cfg == start else 0.7) if held else next(scores)
+        return {"score": value}
+
+    start = tune.ObstacleDetectorConfig()
+    monkeypatch.setattr(tune, "score_input", score)
+    space = tmp_path / "space.yaml"
+    space.write_text("ransac.distance_threshold: [0.05, 1.0]\n")
+    summary = tune.tune([tmp_path / "one.laz"], validate=[tmp_path / "held.laz"],
+                        out=tmp_path / "t.yaml", max_trials=6, space_file=space)
+    assert summary["trials"] == 6 and summary["stopped_early"] == 0
+    assert "spearman_rho" in summary["sensitivity"]["ransac.distance_threshold"]
+    assert summary["best_score"] == 0.95
+    assert summary["validation"]["improved"] is False
+    assert "held-out" in capsys.readouterr().err
+    assert (tmp_path / "t.yaml").exists()
+
+
+def test_tune_never_writes_over_a_file_of_another_kind(tmp_path):
+    # said before the search, not after the budget is spent
+    notes = tmp_path / "notes.txt"
+    notes.write_text("precious\n")
+    res = cli_subprocess("tune", data_file("isprs/samp51-utm.laz"), "--out", notes)
+    assert res.returncode == 2
+    assert res.stderr == (f"lidar-obstacles tune: error: {notes} exists and is not a YAML "
+                          "mapping: not overwriting it\n")
+    assert notes.read_text() == "precious\n"

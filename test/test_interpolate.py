@@ -299,3 +299,19 @@ def test_far_queries_share_neighbourhoods_near_ones_do_not(monkeypatch):
     rmse_each = np.sqrt(np.mean((each - truth) ** 2))
     assert rmse_blocks < 1.01 * rmse_each
     assert np.mean(np.abs(both[len(near):] - each)) < 0.05 * rmse_each
+
+
+def test_rbfnn_answers_within_the_samples_heights():
+    """A few units fitted to a step overshoot it between and beyond the samples; the DEM
+    keeps to the samples' range (a bias and bumps carry no trend beyond them)."""
+    xy = _samples(400, seed=9)
+    z = np.where(xy[:, 0] > 25, 10.0, 0.0)
+    q = np.column_stack([np.linspace(-50, 100, 300), np.full(300, 25.0)])
+    cfg = RbfnnConfig(goal=1e-6, spread=0.3, max_neurons=40)
+    net = train_rbfnn(xy, z, goal=cfg.goal, spread=cfg.spread, max_neurons=cfg.max_neurons)
+    raw = net.predict(q)
+    assert raw.min() < -0.5 or raw.max() > 10.5  # the network alone leaves the range
+    out = interpolate("rbfnn", xy, z, q, rbfnn_cfg=cfg)
+    assert out.min() >= 0.0 and out.max() <= 10.0
+    inside = (raw >= 0.0) & (raw <= 10.0)
+    assert np.array_equal(out[inside], raw[inside])

@@ -177,6 +177,49 @@ def test_nodes_process_a_played_flight(flight, ros_node, tmp_path):
     assert rc_dem == 0, log_dem[-3000:]
 
 
+@pytest.mark.parametrize("sig, subscribed, background", [
+    (signal.SIGINT, True, False), (signal.SIGTERM, True, False), (signal.SIGINT, False, False),
+    (signal.SIGINT, True, True)])
+def test_play_stopped_exits_130_or_143_and_says_what_it_published(sig, subscribed, background,
+                                                                  ros_node, tmp_path):
+    # as replay: no traceback, no summary; Ctrl-C while it waits for subscribers as well,
+    # and `kill -INT` of a script's background job, which starts with SIGINT ignored. (It
+    # exited 0 with {"published": N}, or 1 with an RCLError: rclpy's own handler shut the
+    # context down under a publish.)
+    import re
+
+    bag, ns = tmp_path / "bag", "/player_test"
+    subprocess.run([sys.executable, "-m", "lidar_obstacles.cli", "simulate", str(bag),
+                    "--duration", "0.3", "--points", "1000"], cwd=REPO, check=True,
+                   capture_output=True, timeout=300)
+    got: list = []
+    sub = (ros_node.create_subscription(
+        PointCloud2, f"{ns}/points", got.append,
+        QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)) if subscribed else None)
+    # a bag message every 0.1 s at rate 0.02: one every 5 s of wall time
+    proc = subprocess.Popen([sys.executable, "-m", "lidar_obstacles.cli", "play", str(bag),
+                             "--rate", "0.02", "--namespace", ns], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=(lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+                            if background else None)
+    try:
+        playing = ((lambda: len(got) > 0) if subscribed  # (else: waiting for subscribers)
+                   else (lambda: ros_node.count_publishers(f"{ns}/points") > 0))
+        assert _spin_until(ros_node, playing, 60)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        if sub is not None:
+            ros_node.destroy_subscription(sub)
+    code, word = (130, "interrupted") if sig == signal.SIGINT else (143, "terminated")
+    assert proc.returncode == code and out == "", err
+    count = "[1-9][0-9]*" if subscribed else "0"
+    assert re.fullmatch(rf"lidar-obstacles play: {word} \(published: {count}\)\n", err), err
+
+
 def test_runtime_parameters_and_malformed_clouds(ros_node):
     det = _start("lidar_obstacles.ros.obstacle_detector")
     diag: list = []
@@ -375,6 +418,30 @@ def test_a_bug_on_one_cloud_does_not_take_the_node_down(ros_node, monkeypatch):
         monkeypatch.setattr(node.context, "ok", lambda: False)
         node._handle(msg)
         assert node.stats["failed"] == 2
+    finally:
+        node.destroy_node()
+
+
+def test_save_dem_says_a_write_error_once(ros_node, tmp_path, monkeypatch):
+    # it said "cannot write X: cannot write X: folder ... does not exist"
+    from lidar_obstacles.config import replace
+    from lidar_obstacles.core.dem import DemGrid
+    from lidar_obstacles.ros.dem_builder import DemBuilderNode
+
+    node = DemBuilderNode()
+    try:
+        grid = DemGrid(np.ones((3, 4), np.float32), np.zeros((3, 4), np.uint8),
+                       np.ones((3, 4), np.uint32), np.array([0.0, 0.0]), 1.0)
+        monkeypatch.setattr(node.stage, "grid", lambda: grid)
+        missing, notes = tmp_path / "missing" / "dem.tif", tmp_path / "notes.txt"
+        notes.write_text("precious\n")
+        for path, expected in (
+                (missing, f"cannot write {missing}: folder {missing.parent} does not exist"),
+                (notes, f"{notes} exists and is not a TIFF: not overwriting it")):
+            node.cfg = replace(node.cfg, {"export.path": str(path)})
+            res = node._save_dem(Trigger.Request(), Trigger.Response())
+            assert not res.success and res.message == expected
+        assert notes.read_text() == "precious\n"
     finally:
         node.destroy_node()
 

@@ -518,3 +518,100 @@ def test_a_small_piece_of_a_remembered_roof_is_building():
     assert step(det, 0.0, 20.0, 10.0, 0.0) > 0.95
     assert step(det, 20.0, 23.0, 5.0, 0.1) > 0.95
     assert step(det, 30.0, 33.0, 5.0, 0.2) < 0.05  # apart from the roof seen
+
+
+def _roof_strip(rng, x0: float, x1: float, n_ground: int = 800) -> tuple[np.ndarray, np.ndarray]:
+    """A message of a survey sliced into strips: ground and a roof sloping 0.3 across
+    x0..x1, 30 m long, points ~0.3 m apart. Returns xyz and the ground mask."""
+    g = np.column_stack([rng.uniform(x0, x1, n_ground), rng.uniform(-20, 50, n_ground),
+                         rng.normal(0, 0.02, n_ground)])
+    gx, gy = np.meshgrid(np.arange(x0, x1 - 1e-9, 0.3), np.arange(0, 30, 0.3))
+    gx = gx.ravel() + rng.uniform(-0.1, 0.1, gx.size)
+    gy = gy.ravel() + rng.uniform(-0.1, 0.1, gx.size)
+    roof = np.column_stack([gx, gy, 8.0 + 0.3 * gx + rng.normal(0, 0.03, gx.size)])
+    xyz = np.concatenate([g, roof])
+    return xyz, np.arange(len(xyz)) < len(g)
+
+
+def test_a_roof_sliced_into_thin_strips_is_building_with_the_strips_before():
+    """Strips 1.5 m wide (a survey's 0.1 s slices are ~5 m, its roofs' neighbourhoods
+    ~1 m): alone, every neighbourhood of a strip is cut to a line and no roof is found; with
+    the strip before it as shape context, each later strip's roof is."""
+    from lidar_obstacles.core.pipeline import GroundStep, ObstacleDetector
+
+    rng = np.random.default_rng(3)
+    streamed, alone = ObstacleDetector(), []
+    found = []
+    for i, x0 in enumerate(np.arange(0.0, 12.0, 1.5)):
+        xyz, ground = _roof_strip(rng, x0, x0 + 1.5)
+        hag = np.where(ground, 0.0, xyz[:, 2]).astype(np.float32)
+        step = GroundStep(xyz, ground, hag, 0.1 * i, None, {})
+        found.append((streamed.obstacle_step(step).classes[~ground] == 6).mean())
+        alone.append((ObstacleDetector().obstacle_step(step).classes[~ground] == 6).mean())
+    assert max(alone) == 0.0
+    assert found[0] == 0.0  # nothing before the first strip
+    assert min(found[1:]) > 0.7 and np.mean(found[1:]) > 0.85
+
+
+def test_shape_context_is_what_lies_just_beyond_a_thin_strip():
+    """Earlier points within the radius beyond a thin strip's footprint are its context;
+    those inside it (it has its own there), farther away, or around a wide cloud are not."""
+    from lidar_obstacles.core.obstacles import shape_context
+
+    rng = np.random.default_rng(4)
+    strip = np.column_stack([rng.uniform(0, 4, 3000), rng.uniform(0, 40, 3000)])
+    earlier = np.column_stack([rng.uniform(-10, 14, 20000), rng.uniform(-5, 45, 20000),
+                               rng.uniform(0, 10, 20000)])
+    ctx = shape_context([earlier[:10000], earlier[10000:]], strip, 2.0)
+    x, y = ctx[:, 0], ctx[:, 1]
+    assert np.all((x < 0.0) | (x >= 4.0) | (y < 0.0) | (y >= 40.0))  # none inside
+    assert np.all((x > -2.0 - 1.5) & (x < 6.0 + 1.5) & (y > -3.5) & (y < 43.5))
+    beside = (np.abs(earlier[:, 0] + 1.0) < 0.5) & (earlier[:, 1] > 1) & (earlier[:, 1] < 39)
+    assert len(ctx) >= beside.sum() > 100
+    assert np.isin(earlier[beside, 0], ctx[:, 0]).all()
+    wide = np.column_stack([rng.uniform(0, 40, 20000), rng.uniform(0, 40, 20000)])
+    assert shape_context([earlier], wide, 2.0) is None
+    assert shape_context([], strip, 2.0) is None
+
+
+def test_shape_context_completes_neighbourhoods_and_leaves_the_rest_alone():
+    """A roof cut at x = 0: with the part before the cut as context, the shapes at the cut
+    are those of the uncut roof; further from it than the neighbourhood they do not change
+    at all (the voxels stay aligned)."""
+    from lidar_obstacles.core.obstacles import local_shape
+
+    rng = np.random.default_rng(5)
+    roof = np.column_stack([rng.uniform(-6, 6, 8000), rng.uniform(0, 20, 8000)])
+    roof = np.column_stack([roof, 8.0 + 0.3 * roof[:, 0] + rng.normal(0, 0.02, 8000)])
+    after, before = roof[roof[:, 0] >= 0], roof[roof[:, 0] < 0]
+    alone = local_shape(after, 2.0)
+    completed = local_shape(after, 2.0, context=before)
+    at_cut = (after[:, 0] < 0.3) & (after[:, 1] > 3) & (after[:, 1] < 17)
+    middle = (np.abs(after[:, 0] - 3.0) < 0.3) & (after[:, 1] > 3) & (after[:, 1] < 17)
+    assert np.median(alone.planarity[at_cut]) < np.median(alone.planarity[middle]) - 0.2
+    assert np.median(completed.planarity[at_cut]) > np.median(alone.planarity[middle]) - 0.1
+    far = after[:, 0] > 2.0 + 2 * 0.75  # beyond the radius from the cut, and a coarse voxel
+    for name in ("linearity", "planarity", "roughness"):
+        assert np.allclose(getattr(completed, name)[far], getattr(alone, name)[far])
+
+
+def test_what_clings_to_a_known_roof_joins_it_but_not_what_clings_to_that():
+    """A rough cluster beside a roof or wall of an earlier message is building (a chimney
+    cut from its roof by a strip's edge); beside what only clung to one it is not, or a
+    building would grow into the trees beside it a message at a time."""
+    rng = np.random.default_rng(6)
+    g = np.column_stack([rng.uniform(-20, 20, (4000, 2)), rng.normal(0, 0.02, 4000)])
+    blob = rng.normal(0, 0.3, (80, 3)) + [0.5, 0.0, 8.7]
+    xyz = np.concatenate([g, blob])
+    ground = np.arange(len(xyz)) < len(g)
+    hag = np.where(ground, 0.0, xyz[:, 2]).astype(np.float32)
+    gx, gy = np.meshgrid(np.arange(-8.0, 0.5, 1.0), np.arange(-3.0, 4.0, 1.0))
+    known = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, 8.0)])
+
+    def blob_building(flag: float) -> float:
+        rows = np.column_stack([known, np.full(len(known), flag)])
+        res = classify_obstacles(xyz, ground, hag, cfg=CFG.obstacles, known_buildings=rows)
+        return (res.classes[~ground] == 6).mean()
+
+    assert blob_building(0.0) == 0.0  # nor alone: it is rough
+    assert blob_building(1.0) > 0.5

@@ -77,12 +77,17 @@ def test_simulate_then_replay_keeps_every_point_and_field(sim_bag, tmp_path):
 
 def test_sensor_frame_flight_needs_and_uses_odometry(tmp_path):
     sensor = tmp_path / "sensor"
-    run_cli("simulate", sensor, "--duration", "1", "--frame", "sensor", "--seed", "3")
+    made = run_cli("simulate", sensor, "--duration", "1", "--frame", "sensor", "--seed", "3")
+    assert (made["frame"], made["frame_id"]) == ("sensor", "lidar")
     params = tmp_path / "odom.yaml"
     params.write_text("/**:\n  ros__parameters:\n    use_odometry: true\n")
     out = tmp_path / "out"
     summary = run_cli("replay", sensor, out, "--params-file", params, "--no-dem")
     assert summary["messages"] == 10
+    # without use_odometry it runs in the moving frame, and says so once
+    moving = cli_subprocess("replay", sensor, tmp_path / "moving", "--no-dem")
+    assert moving.returncode == 0 and moving.stderr.count("use_odometry is false") == 1
+    assert "'lidar'" in moving.stderr
     with BagReader(out) as reader:
         rec = next(reader.records(["/obstacles"]))
         assert reader.deserialize(rec).header.frame_id == "map"
@@ -103,13 +108,25 @@ def test_sensor_frame_flight_needs_and_uses_odometry(tmp_path):
 
 
 def test_replay_is_deterministic(sim_bag, tmp_path):
-    run_cli("replay", sim_bag, tmp_path / "a", "--no-dem")
+    assert run_cli("replay", sim_bag, tmp_path / "a", "--no-dem")["topic"] == "/points"
     run_cli("replay", sim_bag, tmp_path / "b", "--no-dem")
     a, b = clouds(tmp_path / "a", "/obstacles"), clouds(tmp_path / "b", "/obstacles")
     assert len(a) == len(b) > 0  # zip alone would pass two empty or unequal replays
     assert sum(len(x) for x in a) > 0  # and some obstacle points to compare
     for x, y in zip(a, b):
         assert x.tobytes() == y.tobytes()
+
+
+def test_a_replays_output_is_not_taken_for_a_scan(sim_bag, tmp_path):
+    """Its /ground and /obstacles have as many messages as the scans had: replaying it
+    asks which one is meant, and does it when told."""
+    run_cli("replay", sim_bag, tmp_path / "out", "--no-dem")
+    res = cli_subprocess("replay", tmp_path / "out", tmp_path / "again", "--no-dem")
+    assert res.returncode == 2 and "holds only this package's outputs" in res.stderr
+    assert "--topic" in res.stderr and len(res.stderr.splitlines()) == 1
+    told = run_cli("replay", tmp_path / "out", tmp_path / "again", "--no-dem",
+                   "--topic", "/obstacles")
+    assert told["topic"] == "/obstacles" and told["messages"] > 0
 
 
 def _contents(items) -> list[tuple[str, int, bytes]]:
@@ -149,33 +166,57 @@ def _diagnostics(bag: Path) -> dict[str, list[tuple[int, int, dict[str, str]]]]:
     return out
 
 
+def test_diagnostics_warn_on_clouds_dropped_since_the_last_report():
+    """The counts cover a node's life; the level only what is new: clouds dropped while a
+    node started leave it OK later. A failure (a bug) stays ERROR."""
+    m = offline.messages
+
+    def status(counts, before):
+        st = m.diagnostics(m.header(0, ""), "n", "/n", counts, {}, [], 10.0,
+                           dropped_before=before).status[0]
+        return ord(st.level), st.message  # (a byte in rclpy's message class)
+
+    assert status({"processed": 5, "rejected": 3}, 0) == (1, "3 clouds dropped since the "
+                                                          "last report")
+    assert status({"processed": 50, "rejected": 3}, 3) == (0, "ok (3 clouds dropped before)")
+    assert status({"processed": 50, "rejected": 3, "lost": 1}, 3)[0] == 1
+    assert status({"processed": 50, "failed": 1}, 1)[0] == 2
+    assert status({"processed": 50}, 0) == (0, "ok")
+
+
 def test_replay_writes_each_nodes_diagnostics_on_the_bags_clock(sim_bag, tmp_path):
     """/diagnostics as both nodes would publish it, every second of the bag's time and at
-    its end: a malformed cloud is counted with its reason (WARN), the points out are the
-    clouds' obstacle points and the DEM's ground, the DEM's check points are measured."""
+    its end: malformed clouds are counted by the kind of their error (WARN in the report
+    after them; two clouds cut short by different lengths are one kind), the points out
+    are the clouds' obstacle points and the DEM's ground, the DEM's check points are
+    measured."""
     from lidar_obstacles.io.bags import POINTCLOUD2, BagWriter, typestore
 
-    bad = tmp_path / "one_bad"
+    bad = tmp_path / "two_bad"
     with BagReader(sim_bag) as reader, BagWriter(bad) as out:
         out.add_topic("/points", POINTCLOUD2)
         for i, rec in enumerate(reader.records(["/points"])):
             msg = reader.deserialize(rec)
-            if i == 4:
-                msg.data = msg.data[: len(msg.data) // 2]  # a cloud cut short
+            if i in (4, 7):
+                msg.data = msg.data[: len(msg.data) // (i - 2)]  # a cloud cut short
             out.write("/points", rec.stamp_ns, bytes(typestore().serialize_cdr(msg, POINTCLOUD2)))
     summary = run_cli("replay", bad, tmp_path / "out")
-    assert summary["messages"] == 19 and summary["rejected"] == 1
+    assert summary["messages"] == 18 and summary["rejected"] == 2
+    assert summary["reject_reasons"] == {"data has N bytes, expected row_step N * height N = N": 2}
+    assert summary["last_reject"].startswith("data has ")  # the full one, of cloud 7
+    assert summary["last_reject"] != next(iter(summary["reject_reasons"]))
     diag = _diagnostics(tmp_path / "out")
     assert set(diag) == {"obstacle_detector: processing", "dem_builder: processing"}
     obstacle_points = sum(len(c) for c in clouds(tmp_path / "out", "/obstacles"))
     for name, seen in diag.items():
         assert [stamp for stamp, _, _ in seen] == [1_000_000_000, 1_900_000_000]  # 1 s, end
         stamp, level, last = seen[-1]
-        assert level == 1  # WARN: a cloud dropped
-        assert (last["received"], last["processed"], last["rejected"]) == ("20", "19", "1")
-        assert [k for k in last if k.startswith("dropped: ")] == [
-            "dropped: " + next(iter(summary["reject_reasons"]))]
-        assert float(last["rate_hz"]) == pytest.approx(10.0, rel=0.1)  # (DEM: clouds it got)
+        # WARN at 1 s, the two clouds dropped since the start; OK at the end, none since
+        assert [lvl for _, lvl, _ in seen] == [1, 0]
+        assert (last["received"], last["processed"], last["rejected"]) == ("20", "18", "2")
+        assert {k: v for k, v in last.items() if k.startswith("dropped: ")} == {
+            "dropped: data has N bytes, expected row_step N * height N = N": "2"}
+        assert float(last["rate_hz"]) == pytest.approx(10.0, rel=0.15)  # (DEM: the 18 it got)
         assert float(last["latency_p95_ms"]) > 0
     detector = diag["obstacle_detector: processing"][-1][2]
     assert int(detector["points_out"]) == obstacle_points > 0
@@ -184,15 +225,74 @@ def test_replay_writes_each_nodes_diagnostics_on_the_bags_clock(sim_bag, tmp_pat
     assert int(dem["check_n"]) > 0 and float(dem["check_rmse_m"]) < 0.2
 
 
-def test_replay_in_three_processes_writes_exactly_what_a_sequential_run_makes(sim_bag, tmp_path):
+def _changed_clouds(sim_bag: Path, out: Path, changes: list) -> Path:
+    """A bag of the first len(changes) clouds of sim_bag, each points array passed through
+    its change (a function that edits it in place)."""
+    from lidar_obstacles.io.bags import POINTCLOUD2, BagWriter, typestore
+
+    with BagReader(sim_bag) as reader, BagWriter(out) as bag:
+        bag.add_topic("/points", POINTCLOUD2)
+        for change, rec in zip(changes, reader.records(["/points"])):
+            msg = reader.deserialize(rec)
+            points = np.array(read_points(msg))
+            change(points)
+            msg.data = np.frombuffer(points.tobytes(), np.uint8)
+            bag.write("/points", rec.stamp_ns, bytes(typestore().serialize_cdr(msg, POINTCLOUD2)))
+    return out
+
+
+def test_replay_makes_stray_points_above_or_below_a_cloud_noise(sim_bag, tmp_path):
+    """50 points of a cloud at z = 5 km, -5 km, 1e12, 1e20, 3e38 m: noise (7), never
+    ground (5 km up they were wire, 1e20 overflowed the voxel indices: exit 1)."""
+    from test_core_inputs import STRAY_Z
+
+    def stray(z):
+        def change(points):
+            points["z"][:50] = z
+        return change
+
+    bag = _changed_clouds(sim_bag, tmp_path / "strays", [stray(z) for z in STRAY_Z])
+    summary = offline.replay(bag, tmp_path / "out")
+    assert summary["messages"] == len(STRAY_Z) and summary["rejected"] == 0
+    ground, obstacles = clouds(tmp_path / "out", "/ground"), clouds(tmp_path / "out", "/obstacles")
+    for z, g, o in zip(STRAY_Z, ground, obstacles):
+        assert not np.isin(g["point_id"], o["point_id"]).any()
+        assert (np.abs(g["z"]) < 1000).all()
+        stray_points = o[o["z"] == np.float32(z)]
+        assert len(stray_points) == 50 and (stray_points["class"] == 7).all(), z
+        assert np.isnan(stray_points["height_above_ground"]).all()
+
+
+def test_replay_refuses_a_cloud_too_big_for_its_grids_with_the_reason(sim_bag, tmp_path):
+    """Half a cloud 1e15 m above the other half (not a few strays: half of it) overflowed
+    its int64 voxel indices (exit 1); now it is rejected and counted, the others replayed."""
+    def keep(points):
+        pass
+
+    def apart(points):
+        points["z"][::2] += np.float32(1e15)
+
+    bag = _changed_clouds(sim_bag, tmp_path / "apart", [keep, apart, keep])
+    summary = offline.replay(bag, tmp_path / "out")
+    assert summary["messages"] == 2 and summary["rejected"] == 1
+    assert summary["reject_reasons"] == {"the cloud spans N m in z, more than N m": 1}
+    assert summary["last_reject"].startswith("the cloud spans 1e+15 m in z")
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_replay_in_three_processes_writes_exactly_what_a_sequential_run_makes(
+        sim_bag, tmp_path, storage):
     """The detector's second half and the DEM run in processes of their own, the writing
     on a thread, and change nothing: same messages, same order, as doing everything one
-    cloud after the other in one process."""
+    cloud after the other in one process. In either storage: sqlite3 lets only the thread
+    that opened the bag write it."""
     from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
     from lidar_obstacles.ros.offline import DemSchedule, ReplayStats, drain, replay, run_stages
     from lidar_obstacles.ros.stages import DemStage, DetectorStage
 
-    replay(sim_bag, tmp_path / "parallel")
+    replay(sim_bag, tmp_path / "parallel", storage=storage)
+    suffix = {"mcap": ".mcap", "sqlite3": ".db3"}[storage]
+    assert [p.suffix for p in (tmp_path / "parallel").iterdir() if p.suffix != ".yaml"] == [suffix]
     with BagReader(tmp_path / "parallel") as reader:
         written = [(r.topic, r.stamp_ns, r.raw) for r in reader.records()]
     with BagReader(sim_bag) as reader:
@@ -299,6 +399,16 @@ def test_las2bag_tiles(tmp_path):
         assert np.ptp(c["x"]) <= 50 and np.ptp(c["y"]) <= 50
 
 
+def test_export_dem_says_why_no_cloud_could_be_used(sim_bag, tmp_path):
+    """Every cloud over `input.max_points`: the reason, not "no ground found"."""
+    params = tmp_path / "small.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    input.max_points: 100\n")
+    res = cli_subprocess("export-dem", sim_bag, tmp_path / "dem.tif", "--params-file", params)
+    assert res.returncode == 2 and "20 rejected" in res.stderr
+    assert "more than input.max_points" in res.stderr and "no ground" not in res.stderr
+    assert not (tmp_path / "dem.tif").exists()
+
+
 def test_export_dem_lands_on_survey_coordinates(tmp_path):
     src = data_file("isprs/samp51-utm.laz")
     run_cli("las2bag", src, tmp_path / "bag")
@@ -320,6 +430,31 @@ def test_export_dem_lands_on_survey_coordinates(tmp_path):
     again = run_cli("export-dem", tmp_path / "bag", tmp_path / "tin.tif", "--params-file", params)
     assert (again["rows"], again["cols"]) == (summary["rows"], summary["cols"])
     assert summary["rows"] * summary["resolution"] > 250  # more than one window
+    # the shipped config sets the live node's window: kept, and said
+    shipped = cli_subprocess("export-dem", tmp_path / "bag", tmp_path / "win.tif",
+                             "--params-file", REPO / "config" / "dem_builder.yaml")
+    assert shipped.returncode == 0 and "dem.extent is 200 m" in shipped.stderr
+    assert json.loads(shipped.stdout)["rows"] < summary["rows"]
+
+
+def test_export_dem_replaces_its_own_outputs_and_nothing_else(sim_bag, tmp_path, capsys):
+    tif, png = tmp_path / "dem.tif", tmp_path / "dem_hillshade.png"
+    run_cli("export-dem", sim_bag, tif)
+    written = tif.read_bytes(), png.read_bytes()
+    run_cli("export-dem", sim_bag, tif)  # a TIFF and a PNG are replaced
+    assert tif.read_bytes()[:4] == b"II*\0" and png.read_bytes()[:4] == b"\x89PNG"
+    capsys.readouterr()
+    notes = tmp_path / "afile.txt"
+    for target, victim in ((notes, notes), (tif, tif), (tif, png)):
+        victim.write_text("precious\n")
+        assert main(["export-dem", str(sim_bag), str(target)]) == 2
+        kind = "a PNG" if victim == png else "a TIFF"
+        assert capsys.readouterr().err == (f"lidar-obstacles export-dem: error: {victim} exists "
+                                           f"and is not {kind}: not overwriting it\n")
+        assert victim.read_text() == "precious\n"
+        victim.write_bytes(written[victim == png])
+    assert tif.read_bytes() == written[0]  # the TIFF left alone when its hillshade is refused
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile.txt", tif.name, png.name]
 
 
 @pytest.mark.parametrize("args, expected", [
@@ -328,6 +463,11 @@ def test_export_dem_lands_on_survey_coordinates(tmp_path):
     (["export-dem", "/nonexistent/bag", "OUT.tif"], "bag not found"),
     (["simulate", "OUT", "--scene", "moon"], "invalid choice: 'moon'"),  # a usage mistake
     (["demo", "--duration", "-1"], "must be positive"),
+    (["las2bag", "/nonexistent.laz", "OUT", "--frame-id", ""], "not a valid frame id"),
+    (["replay", "/nonexistent/bag", "OUT", "--bogus"],
+     "unrecognized arguments: --bogus (see lidar-obstacles replay --help)"),
+    (["simulate", "OUT", "--points", "0"], "argument --points: must lie in [100, 1e+06]"),
+    (["las2bag", "/nonexistent.laz", "OUT", "--frame-id", "/map"], "not a valid frame id"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args, expected, tmp_path):
     res = cli_subprocess(*[a.replace("OUT", str(tmp_path / "o")) for a in args])
@@ -335,6 +475,18 @@ def test_bad_input_is_one_line_and_exit_2(args, expected, tmp_path):
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and expected in lines[0], res.stderr
     assert not list(tmp_path.iterdir())
+
+
+def test_demo_never_makes_its_folder_over_a_file(tmp_path):
+    notes = tmp_path / "afile.txt"
+    notes.write_text("precious\n")
+    for out, expected in ((notes, f"{notes} exists and is not a folder: not overwriting it"),
+                          (notes / "demo", f"cannot make the output folder {notes / 'demo'}: "
+                                           "Not a directory")):
+        res = cli_subprocess("demo", "--out", out, "--duration", "0.3")
+        assert res.returncode == 2
+        assert res.stderr == f"lidar-obstacles demo: error: {expected}\n"
+    assert notes.read_text() == "precious\n"
 
 
 def test_corrupt_bag_and_bad_params_exit_2(sim_bag, tmp_path):

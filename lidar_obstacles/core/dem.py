@@ -509,13 +509,12 @@ def build_dem(ground_xyz: np.ndarray, *, cfg: DemBuilderConfig,
         return empty_grid(res, "no ground points")
     box = (np.array(bounds, dtype=np.float64).reshape(2, 2) if bounds is not None
            else np.stack([xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)]))
-    lo = np.floor(box[0] / res).astype(np.int64)
-    hi = np.floor(box[1] / res).astype(np.int64)
-    cols, rows = (hi - lo + 1).tolist()
+    lo, hi = np.floor(box[0] / res), np.floor(box[1] / res)
+    cols, rows = hi - lo + 1  # floats: a box of 1e19 cells overflows int64
     if rows * cols > cfg.dem.max_cells:
-        raise ConfigError(f"DEM of {rows} x {cols} cells exceeds dem.max_cells = "
+        raise ConfigError(f"DEM of {rows:.6g} x {cols:.6g} cells exceeds dem.max_cells = "
                           f"{cfg.dem.max_cells}; raise it or coarsen dem.resolution")
-    cells = _Cells(lo, (rows, cols), res)
+    cells = _Cells(lo.astype(np.int64), (int(rows), int(cols)), res)
     if len(xyz):
         cells.add(xyz)
     reason = _flat_reason(xyz)

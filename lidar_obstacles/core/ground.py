@@ -1151,14 +1151,10 @@ def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
     c = cfg.cell
     allp = pts if fixed is None else np.concatenate([pts, fixed])
     n = len(pts)
+    check_extent(allp, c)
     origin = np.array([allp[:, 0].min(), allp[:, 1].min()])  # (axis-0 reductions are slow)
     col, row = (np.floor((allp[:, a] - origin[a]) / c).astype(np.int64) for a in (0, 1))
     shape = (int(row.max()) + 1, int(col.max()) + 1)  # rows = y, cols = x
-    if shape[0] * shape[1] > MAX_RASTER_CELLS:
-        raise CloudFormatError(
-            f"the cloud (with its ground context) spans {shape[1] * c:.0f} x "
-            f"{shape[0] * c:.0f} m, more than {MAX_RASTER_CELLS:,} cells of "
-            f"ground.cell = {c} m: cut it into tiles (las2bag --tile-size)")
     flat = row * shape[1] + col
     z = np.ascontiguousarray(allp[:, 2])
     zmin = _grid_min(flat, z, shape)
@@ -1414,18 +1410,31 @@ def _ransac_tiles(xyz: np.ndarray, tiling: TilingConfig, rcfg: RansacConfig,
 
 # The raster filter's grid at most (float64 work grids: ~10 x 8 bytes per cell).
 MAX_RASTER_CELLS = 25_000_000
+# The most a cloud may span in z, m: the earth's relief is ~20 km. More is bad coordinates,
+# and overflows the obstacles' int64 voxel keys from ~7e5 m (50 km of XY, 0.06 m voxels).
+MAX_RELIEF = 100_000.0
+# The farthest a point may lie from the frame's origin, m (the earth's radius is 6.4e6 m):
+# the context's cell keys hold +-1e9 cells of `context.cell` >= 0.1 m.
+MAX_COORDINATE = 1e8
 
 # Stray points: beyond the interquartile box of a cloud by this many IQRs plus this many
 # metres (a uniform strip spans 2 IQRs; a UAV scan's far edge lies well inside).
 FAR_IQRS = 3.0
 FAR_MARGIN = 500.0  # m
+# In z, beyond the height quartiles by FAR_IQRS IQRs plus this plus the diagonal of the
+# cloud's footprint: terrain rising 1:1 across the whole cloud with the tallest building
+# (828 m) on top stays inside. The real data's farthest point from its quartiles lies 61 m
+# beyond 3 IQRs (ISPRS samp31; AHN corridor 42 m).
+FAR_MARGIN_Z = 1000.0  # m
 
 
-def far_points(xy: np.ndarray) -> np.ndarray:
-    """(N,) bool: points of xy (N, 2) m far outside the rest of their cloud in XY, a
-    multipath return or a bad coordinate kilometres away. Judged on the quartiles of at
-    most ~5 000 of the points, so a few strays cannot move the bounds."""
-    n = len(xy)
+def far_points(xyz: np.ndarray) -> np.ndarray:
+    """(N,) bool: points of xyz (N, 2 or 3) m far outside the rest of their cloud, a
+    multipath return or a bad coordinate kilometres away: in XY beyond the quartile box by
+    FAR_IQRS IQRs + FAR_MARGIN, in z (a third column) by FAR_IQRS IQRs + FAR_MARGIN_Z + the
+    footprint's diagonal. Judged on the quartiles of at most ~5 000 of the points, so a few
+    strays cannot move the bounds."""
+    n = len(xyz)
     if n < 8:
         return np.zeros(n, bool)
     # One column at a time: percentiles of a strided (M, 2) sample along axis 0 and the
@@ -1433,13 +1442,43 @@ def far_points(xy: np.ndarray) -> np.ndarray:
     # figures: the same partition and interpolation per column).
     step = max(1, n // 5000)
     inside = np.ones(n, bool)
-    for a in range(xy.shape[1]):
-        col = xy[:, a]
+    for a in range(min(xyz.shape[1], 2)):
+        col = xyz[:, a]
         q1, q3 = np.percentile(col[::step], [25.0, 75.0])
         reach = FAR_IQRS * (q3 - q1) + FAR_MARGIN
         inside &= col >= q1 - reach
         inside &= col <= q3 + reach
+    if xyz.shape[1] > 2:
+        sample = xyz[::step][inside[::step]]  # holds the quartiles: never empty
+        footprint = np.hypot(np.ptp(sample[:, 0]), np.ptp(sample[:, 1]))
+        z = xyz[:, 2]
+        q1, q3 = np.percentile(sample[:, 2], [25.0, 75.0])
+        reach = FAR_IQRS * (q3 - q1) + FAR_MARGIN_Z + footprint
+        inside &= z >= q1 - reach
+        inside &= z <= q3 + reach
     return ~inside
+
+
+def check_extent(xyz: np.ndarray, cell: float) -> None:
+    """CloudFormatError when points xyz (N >= 1, 3) m span more than MAX_RASTER_CELLS
+    cells of `cell` m in XY or more than MAX_RELIEF in z, or lie beyond MAX_COORDINATE.
+    Every ground method and the obstacles grid the cloud (the context's footprint and
+    cell keys, voxels), so this is judged in floats before any cell index is cast to
+    int64, which a span of 1e19 cells overflows."""
+    lo, hi = column_min(xyz), column_max(xyz)
+    cols, rows = np.floor((hi[:2] - lo[:2]) / cell) + 1
+    if rows * cols > MAX_RASTER_CELLS:
+        raise CloudFormatError(
+            f"the cloud spans {cols * cell:.6g} x {rows * cell:.6g} m, more than "
+            f"{MAX_RASTER_CELLS:,} cells of ground.cell = {cell} m: cut it into tiles "
+            "(las2bag --tile-size)")
+    if hi[2] - lo[2] > MAX_RELIEF:
+        raise CloudFormatError(f"the cloud spans {hi[2] - lo[2]:.3g} m in z, more than "
+                               f"{MAX_RELIEF:.0f} m: its coordinates are not a scene")
+    if max(-lo.min(), hi.max()) > MAX_COORDINATE:
+        raise CloudFormatError(f"the cloud lies {max(-lo.min(), hi.max()):.3g} m from the "
+                               f"frame's origin, more than {MAX_COORDINATE:.0e} m: its "
+                               "coordinates are not a scene")
 
 
 def _collinear_xy(pts: np.ndarray) -> bool:
@@ -1465,11 +1504,13 @@ def classify_ground(xyz: np.ndarray, *, tiling: TilingConfig, ground: GroundConf
     Fewer than 3 points are all ground with height 0 (there is no surface to be above).
     Points collinear or coincident in XY go to the raster filter (`hybrid`) whatever
     `ground.method` says: a TIN or a plane needs an area. CloudFormatError when xyz is
-    not (N, 3) or holds a NaN or an infinity.
+    not (N, 3), holds a NaN or an infinity, or spans more than :func:`check_extent` allows.
     """
     t0 = time.perf_counter()
     xyz = points_xyz(xyz, "classify_ground")
     n = len(xyz)
+    if n:
+        check_extent(xyz, ground.cell)
     if n < 3:
         return GroundResult(np.ones(n, bool), np.zeros(n, np.float32), 0, 0, {"total": 0.0})
     rng = rng or np.random.default_rng(ransac.seed)

@@ -19,13 +19,15 @@ and the main axis (`local_shape`; inside a crown's solid mass none of them is so
    `building_min_area` (in its own plane, so walls count) whose main plane, found by the
    paper's RANSAC with the robust eigenvalue fit, holds most of it is a roof or wall;
    rough points clinging to it (edges, chimneys) join it. A small patch continuing a roof
-   or wall of an earlier message counts with it.
+   or wall of an earlier message counts with it, and rough points clinging to one join it.
 5. Wires are followed along their own axis through crowns and clutter, where they stop
    looking linear. Poles and other slender things are unclassified (1); the rest is
    vegetation by height above ground (3 < 0.5 m <= 4 <= 2 m < 5).
 
 Measured on the AHN corridor and AHN4 tiles (benchmarks/bench_ground.py): k = 10 nearest
-neighbours made scan lines on roofs look like wires; a 2 m radius does not.
+neighbours made scan lines on roofs look like wires; a 2 m radius does not. A thin strip
+(a survey streamed in 0.1 s slices) borrows the candidates of the strips before it as
+neighbours (`shape_context`): its edges cut most of its neighbourhoods.
 """
 from __future__ import annotations
 
@@ -83,6 +85,7 @@ TOWER_BAND_MIN = 10  # points in the band TOWER_BODY from which its spread bound
 PLANAR_SHARE = 0.4  # buildings: share of a planar patch on its main RANSAC plane
 BUILDING_PLANARITY = 0.5  # (l2 - l3) / l1 of a roof or wall neighbourhood
 BUILDING_REACH = 1.5  # m: rough points this close to a roof (edges, chimneys) join it
+THIN_SHARE = 1 / 3  # of a footprint within feature_radius of its edge: a thin strip (shape_context)
 
 
 @dataclass(frozen=True)
@@ -104,8 +107,10 @@ class ObstacleClasses:
     (T, 4) x, y, radius and height above ground (m) of the towers recognised, for the next
     message's known_towers;
     wires: (W, 3) m, the wire points thinned to one per WIRE_MEMORY_VOXEL, for its
-    known_wires; buildings: (B, 3) m, the roof and wall points thinned to one per
-    BUILDING_MEMORY_VOXEL, for its known_buildings."""
+    known_wires; buildings: (B, 4) x, y, z (m) and 1 for a roof or wall, 0 for what only
+    clings to one (edges, chimneys), the building points thinned to one per
+    BUILDING_MEMORY_VOXEL, for its known_buildings; candidates: (C, 3) m, the points whose
+    shape was sought, for a later thin strip's shape_context."""
 
     classes: np.ndarray
     object_id: np.ndarray
@@ -113,7 +118,8 @@ class ObstacleClasses:
     timings: dict[str, float] = field(default_factory=dict)
     towers: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     wires: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    buildings: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    buildings: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    candidates: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     @staticmethod
     def expand(part: "ObstacleClasses", where: np.ndarray, fill: int) -> "ObstacleClasses":
@@ -123,7 +129,7 @@ class ObstacleClasses:
         object_id = np.full(len(where), -1, np.int32)
         classes[where], object_id[where] = part.classes, part.object_id
         return ObstacleClasses(classes, object_id, part.objects, part.timings, part.towers,
-                               part.wires, part.buildings)
+                               part.wires, part.buildings, part.candidates)
 
 
 def search_tree(points: np.ndarray) -> cKDTree:
@@ -236,8 +242,8 @@ class LocalShape:
     roughness: np.ndarray
 
 
-def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHBOURS
-                ) -> LocalShape:
+def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHBOURS,
+                context: np.ndarray | None = None) -> LocalShape:
     """Shape features of (M, 3) points (m) from the covariance of their neighbourhood: the
     centroids of the fine voxels (edge radius / 8) within `radius` m (at most
     `max_neighbours`, the nearest) of the centroid of the point's coarse voxel (3 x 3 x 3
@@ -263,20 +269,36 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
     6 679 / 2 426 / 43 050 smooth points) or on the simulated flights, and no point of
     them changes class; with 20 neighbours 641 AHN4 roof points became vegetation, with 18
     746 (and 9 on 07CZ2_14). A forest strip's coarse voxels are 36 % solid, and its search
-    40 % shorter (59 -> 35 ms of CPU)."""
+    40 % shorter (59 -> 35 ms of CPU).
+
+    context: (C, 3) m, points of earlier messages (`shape_context`): neighbours only, their
+    own shape is not sought. The voxels stay aligned to xyz's, so where the context does
+    not reach, the shapes are those without it."""
     m = len(xyz)
     lo = column_min(xyz) if m else np.zeros(3)
-    centre = _voxel_grid(xyz, lo, radius / 8.0)[0] if m >= 3 else xyz
+    coarse_edge = 3.0 * radius / 8.0
+    if m >= 3 and context is not None and len(context):
+        below = np.max(lo - column_min(context))  # whole coarse voxels, so both grids align
+        lo = lo - max(np.ceil(below / coarse_edge), 0.0) * coarse_edge
+        xyz_all = np.concatenate([xyz, context])
+    else:
+        xyz_all = xyz
+    centre = _voxel_grid(xyz_all, lo, radius / 8.0)[0] if m >= 3 else xyz
     if len(centre) < 3:
         return LocalShape(np.zeros(m), np.zeros(m), np.tile([0.0, 0.0, 1.0], (m, 1)),
                           np.zeros(m))
-    at, coarse, ijk = _voxel_grid(xyz, lo, 3.0 * radius / 8.0)
+    at, coarse, ijk = _voxel_grid(xyz_all, lo, coarse_edge)
     v, q = len(centre), len(at)  # fine centroids, coarse query points
     # per coarse voxel: a solid block's shape, replaced below where searched
     linearity, planarity = np.zeros(q), np.zeros(q)
     axis = np.tile([0.0, 0.0, 1.0], (q, 1))
-    roughness = np.full(q, 3.0 * (3.0 * radius / 8.0) / np.sqrt(12.0))
-    ask = np.flatnonzero(_occupied_neighbours(ijk) < SOLID_NEIGHBOURS)
+    roughness = np.full(q, 3.0 * coarse_edge / np.sqrt(12.0))
+    asked = _occupied_neighbours(ijk) < SOLID_NEIGHBOURS
+    if len(xyz_all) > m:  # the context's own voxels are not sought
+        mine = np.zeros(q, bool)
+        mine[coarse[:m]] = True
+        asked &= mine
+    ask = np.flatnonzero(asked)
     k = min(max_neighbours, v)
     dist, nn = search_tree(centre).query(at[ask], k=k, distance_upper_bound=radius,
                                          workers=_workers(len(ask), k))
@@ -302,7 +324,45 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
     l1 = np.maximum(w[:, 0], 1e-12)
     linearity[ask], planarity[ask] = (w[:, 0] - w[:, 1]) / l1, (w[:, 1] - w[:, 2]) / l1
     roughness[ask] = np.sqrt(w[:, 2])
+    coarse = coarse[:m]
     return LocalShape(linearity[coarse], planarity[coarse], axis[coarse], roughness[coarse])
+
+
+def shape_context(recent: list[np.ndarray], cloud_xy: np.ndarray, radius: float
+                  ) -> np.ndarray | None:
+    """(C, 3) m: the points of earlier messages, `recent` (each (R, 3) m), that lie beyond
+    the edge of a thin cloud's footprint, within `radius` m of it; None when the cloud
+    (cloud_xy (N, 2) m) is not thin or nothing lies there.
+
+    A survey sliced into 0.1 s messages (las2bag) comes as strips ~5 m wide: most of a
+    strip lies within a shape neighbourhood of its edge, and a roof cut there looked rough
+    or linear (AHN4 streamed: 18 % of building points taken for vegetation, 4 % for wire
+    or tower). The strips before it complete those neighbourhoods. The footprint is the
+    cloud's occupied 1 m columns, closed and with its holes filled; it is thin when
+    THIN_SHARE of it lies within `radius` of its edge. A UAV's wide scan (the simulator's
+    ~30 x 85 m) is not thin: it has its own neighbourhoods, and its earlier scans, which
+    it mostly covers again, are not searched (that cost ~20 ms per forest message)."""
+    if not recent or len(cloud_xy) == 0:
+        return None
+    pad = int(np.ceil(radius)) + 2  # cells of margin around the footprint
+    base = np.floor(column_min(cloud_xy)) - pad
+    ij = (cloud_xy - base).astype(np.int64)
+    size = tuple(int(n) for n in column_max(ij) + pad + 1)
+    foot = np.zeros(size, bool)
+    foot[ij[:, 0], ij[:, 1]] = True
+    foot = ndimage.binary_fill_holes(ndimage.binary_closing(foot, np.ones((3, 3), bool)))
+    if np.mean(ndimage.distance_transform_edt(foot)[foot] <= radius) < THIN_SHARE:
+        return None
+    # beyond the footprint, within radius of it (+ a cell's diagonal: cells, not points)
+    band = ~foot & (ndimage.distance_transform_edt(~foot) <= radius + np.sqrt(2.0))
+    lo, hi = base, base + np.array(size)
+    parts = []
+    for pts in recent:
+        pts = pts[np.all((pts[:, :2] >= lo) & (pts[:, :2] < hi), axis=1)]
+        cell = (pts[:, :2] - base).astype(np.int64)
+        parts.append(pts[band[cell[:, 0], cell[:, 1]]])
+    context = np.concatenate(parts)
+    return context if len(context) else None
 
 
 def _occupied_neighbours(ijk: np.ndarray) -> np.ndarray:
@@ -548,46 +608,62 @@ def patch_area(pts: np.ndarray, labels: np.ndarray, cell: float = 1.0) -> np.nda
 
 def _buildings(xyz: np.ndarray, cand: np.ndarray, shape: LocalShape, allowed: np.ndarray,
                cfg: ObstaclesConfig, rng: np.random.Generator, known: np.ndarray
-               ) -> np.ndarray:
-    """(M,) bool over the candidates `cand`: roofs and walls.
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) bool over the candidates `cand`: roofs and walls with what clings to them, and
+    (M,) bool: the roofs and walls alone.
 
     Smooth planar points (points within +-t of a plane spread t/sqrt(3), t the plane
-    threshold) are joined into patches on a 1 m voxel grid, with the roof and wall points
-    `known` (K, 3) m from earlier messages that they continue; a patch covering at least
-    `building_min_area` whose main plane, found by the paper's RANSAC with the robust
-    eigenvalue fit, holds PLANAR_SHARE of this message's part of it is a roof or wall.
-    Crowns are rough, so their patches stay small. Edges, ridges and chimneys are rough
-    too: the allowed points within BUILDING_REACH of a roof join it."""
+    threshold) are joined into patches on a 1 m voxel grid, with the building points
+    `known` (K, 4) (x, y, z m and the roof-or-wall flag) from earlier messages that they
+    continue; a patch covering at least `building_min_area` whose main plane, found by the
+    paper's RANSAC with the robust eigenvalue fit, holds PLANAR_SHARE of this message's
+    part of it is a roof or wall. Crowns are rough, so their patches stay small. Edges,
+    ridges and chimneys are rough too: the allowed points within BUILDING_REACH of a roof
+    or wall, of this message or a known one, join it. Only roofs and walls draw them in:
+    had what clung to a known building drawn more, at 10 Hz a building would have grown
+    into the trees beside it by 1.5 m a message (simulated urban flight: 11 % of the
+    vegetation became building)."""
     is_building = np.zeros(len(cand), bool)
     smooth = np.flatnonzero(allowed & (shape.planarity > BUILDING_PLANARITY)
                             & (shape.roughness < cfg.building_plane_threshold / np.sqrt(3.0)))
-    if len(smooth) < 3:
-        return is_building
-    pts = xyz[cand[smooth]]
-    if len(known):  # what can join them: within a voxel and its neighbours
-        lo, hi = column_min(pts) - 2.0, column_max(pts) + 2.0
-        pts = np.concatenate([pts, known[np.all((known >= lo) & (known <= hi), axis=1)]])
-    patches = voxel_components(pts, 1.0)
-    area = patch_area(pts, patches)
-    patches = patches[:len(smooth)]
-    counts = np.bincount(patches, minlength=len(area))
-    big = np.flatnonzero((area >= cfg.building_min_area) & (counts >= 3))
-    if len(big) == 0:
-        return is_building
-    order = np.argsort(patches, kind="stable")
-    starts = np.searchsorted(patches[order], big)
-    for lab, st in zip(big, starts):
-        members = smooth[order[st:st + counts[lab]]]
-        plane = ransac_plane(xyz[cand[members]], distance_threshold=cfg.building_plane_threshold,
-                             max_trials=100, rng=rng)
-        if plane.plane is not None and plane.inliers.mean() >= PLANAR_SHARE:
-            is_building[members] = True
+    if len(smooth) >= 3:
+        pts = xyz[cand[smooth]]
+        if len(known):  # what can join them: within a voxel and its neighbours
+            lo, hi = column_min(pts) - 2.0, column_max(pts) + 2.0
+            pts = np.concatenate([pts, _in_box(known[:, :3], lo, hi)])
+        patches = voxel_components(pts, 1.0)
+        area = patch_area(pts, patches)
+        patches = patches[:len(smooth)]
+        counts = np.bincount(patches, minlength=len(area))
+        big = np.flatnonzero((area >= cfg.building_min_area) & (counts >= 3))
+        order = np.argsort(patches, kind="stable")
+        starts = np.searchsorted(patches[order], big)
+        for lab, st in zip(big, starts):
+            members = smooth[order[st:st + counts[lab]]]
+            plane = ransac_plane(xyz[cand[members]],
+                                 distance_threshold=cfg.building_plane_threshold,
+                                 max_trials=100, rng=rng)
+            if plane.plane is not None and plane.inliers.mean() >= PLANAR_SHARE:
+                is_building[members] = True
+    roofs = is_building.copy()
     others = np.flatnonzero(allowed & ~is_building)
-    if is_building.any() and len(others):
-        dist, _ = search_tree(xyz[cand[is_building]]).query(
+    if len(others) == 0:
+        return is_building, roofs
+    pull = xyz[cand[is_building]]
+    if len(known):
+        near = xyz[cand[others]]
+        lo, hi = column_min(near) - BUILDING_REACH, column_max(near) + BUILDING_REACH
+        pull = np.concatenate([pull, _in_box(known[known[:, 3] > 0, :3], lo, hi)])
+    if len(pull):
+        dist, _ = search_tree(pull).query(
             xyz[cand[others]], distance_upper_bound=BUILDING_REACH, workers=_workers(len(others)))
         is_building[others[np.isfinite(dist)]] = True
-    return is_building
+    return is_building, roofs
+
+
+def _in_box(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The rows of (K, 3) pts within the box lo..hi (3,)."""
+    return pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
 
 
 def _wires_sag_away(top_xy: np.ndarray, top_z: float, touching: np.ndarray,
@@ -816,13 +892,16 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
                        cfg: ObstaclesConfig, rng: np.random.Generator | None = None,
                        known_towers: np.ndarray | None = None,
                        known_wires: np.ndarray | None = None,
-                       known_buildings: np.ndarray | None = None) -> ObstacleClasses:
+                       known_buildings: np.ndarray | None = None,
+                       context: np.ndarray | None = None) -> ObstacleClasses:
     """Classes of every point of (N, 3) float64 xyz (m) given the ground mask (N,) bool and
     the height above ground (N,) float32 m (NaN: unknown, taken as 0). known_towers: (K, 4)
     x, y, radius, height (m) of towers recognised in earlier messages
     (ObstacleClasses.towers);
     known_wires: (W, 3) m, wire points of earlier messages (ObstacleClasses.wires);
-    known_buildings: (B, 3) m, their roof and wall points (ObstacleClasses.buildings)."""
+    known_buildings: (B, 4) their building points (ObstacleClasses.buildings);
+    context: (C, 3) m, points of earlier messages beyond a thin strip's edge, neighbours in
+    the shape features only (`shape_context`)."""
     t0 = time.perf_counter()
     rng = rng or np.random.default_rng(0)
     n = len(xyz)
@@ -842,12 +921,12 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
     cand = nong[hag[nong] >= cfg.min_height]
     t1 = time.perf_counter()
     objects: list[ObstacleObject] = []
-    towers, wires, buildings = np.zeros((0, 4)), np.zeros((0, 3)), np.zeros((0, 3))
+    towers, wires, buildings = np.zeros((0, 4)), np.zeros((0, 3)), np.zeros((0, 4))
     known_wires = np.zeros((0, 3)) if known_wires is None else np.asarray(known_wires, float)
-    known_buildings = (np.zeros((0, 3)) if known_buildings is None
-                       else np.asarray(known_buildings, float))
+    known_buildings = (np.zeros((0, 4)) if known_buildings is None
+                       else np.asarray(known_buildings, float).reshape(-1, 4))
     if len(cand) >= 3:
-        shape = local_shape(xyz[cand], cfg.feature_radius)
+        shape = local_shape(xyz[cand], cfg.feature_radius, context=context)
         # 2. wires
         is_wire = _wires(xyz, cand, hag, shape, cfg, known_wires)
         classes[cand[is_wire]] = WIRE
@@ -879,8 +958,8 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
         tower[rest[is_tower]] = True
         classes[cand[tower]] = TOWER
         # 4. buildings: large planar patches (and what clings to them); poles
-        is_building = _buildings(xyz, cand, shape, ~is_wire & ~tower, cfg, rng,
-                                 known_buildings)
+        is_building, roofs = _buildings(xyz, cand, shape, ~is_wire & ~tower, cfg, rng,
+                                        known_buildings)
         classes[cand[is_building]] = BUILDING
         pole = (kept & (extent < 2.0) & (height > 3.0))[labels] & ~is_tower
         classes[cand[rest[pole & ~is_building[rest]]]] = UNCLASSIFIED
@@ -904,7 +983,9 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
             wires, _ = _voxel_centroids(w, column_min(w), WIRE_MEMORY_VOXEL)
         if is_building.any():
             b = xyz[cand[is_building]]
-            buildings, _ = _voxel_centroids(b, column_min(b), BUILDING_MEMORY_VOXEL)
+            buildings, voxel = _voxel_centroids(b, column_min(b), BUILDING_MEMORY_VOXEL)
+            roof = np.bincount(voxel, roofs[is_building], len(buildings)) > 0
+            buildings = np.column_stack([buildings, roof])
         for mask in (is_building, is_wire):
             ids = cand[mask]
             if len(ids):
@@ -919,7 +1000,7 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
     return ObstacleClasses(classes, object_id, tuple(objects),
                            {"noise": t1 - t0, "wires": t2 - t1, "objects": t3 - t2,
                             "summaries": t4 - t3, "total": t4 - t0}, towers, wires,
-                           buildings)
+                           buildings, xyz[cand])
 
 
 def _objects(xyz: np.ndarray, hag: np.ndarray, classes: np.ndarray,

@@ -11,6 +11,7 @@ one explicit object, so the halves can run in different processes (`replay`).
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -68,7 +69,13 @@ def _wire_memory() -> RecentObjects:
 # A strip that catches a roof only in small pieces still knows the building: roof and wall
 # points 1 m apart (100 000: ~10 ha of roof), offered as far as a piece may continue them.
 def _building_memory() -> RecentObjects:
-    return RecentObjects(3, seconds=30.0, size=100000, radius=5.0)
+    return RecentObjects(4, seconds=30.0, size=100000, radius=5.0)
+
+
+# How long a message's obstacle candidates are kept for the shape context of a thin strip
+# after it (a survey's 0.1 s slices: the strips before it, ~5 m each), and how many messages.
+SHAPE_CONTEXT_SECONDS = 1.0
+SHAPE_CONTEXT_MESSAGES = 20
 
 
 @dataclass(frozen=True)
@@ -151,13 +158,13 @@ class StreamingGround:
         """Ground of one cloud xyz (N >= 1, 3) float64 m, filtered with the context around
         it, which this cloud's ground then joins (stamp: seconds). Returns the result, the
         seconds spent reading the context, filtering and updating the context, and the
-        stray points far from the cloud (:func:`far_points`; None when there are none):
-        never ground, no height, and left out of the filter's raster, which one point
-        kilometres away would have made gigabytes."""
+        stray points far from the cloud in XY or z (:func:`far_points`; None when there
+        are none): never ground, no height, and left out of the filter's raster, which one
+        point kilometres away would have made gigabytes, and of the obstacles' shapes."""
         from lidar_obstacles.core.ground import GroundResult, classify_ground, far_points
 
         cfg = self.cfg
-        far = far_points(xyz[:, :2])
+        far = far_points(xyz)
         full = xyz
         if far.any():
             xyz = xyz[~far]
@@ -193,6 +200,7 @@ class ObstacleDetector:
         self._feature_rng = np.random.default_rng(self.cfg.features.seed)
         self.towers, self.wires = _tower_memory(), _wire_memory()
         self.buildings = _building_memory()
+        self.candidates: deque[tuple[float, np.ndarray]] = deque()  # (stamp s, (C, 3) m)
 
     def reconfigure(self, cfg: ObstacleDetectorConfig) -> None:
         """Take new parameters for the next message; the ground context is kept when its
@@ -232,7 +240,7 @@ class ObstacleDetector:
         of a cloud whose ground `ground_step` found. Its only state is the towers, wires and
         buildings seen in earlier clouds."""
         from lidar_obstacles.core.obstacles import (ObstacleClasses, classify_obstacles,
-                                                    clearance_grid)
+                                                    clearance_grid, shape_context)
 
         cfg, xyz = self.cfg, step.xyz
         t3 = time.perf_counter()
@@ -242,16 +250,24 @@ class ObstacleDetector:
                                   np.zeros(0, np.int32), (), None, {"total": 0.0})
         near = slice(None) if step.far is None else ~step.far
         lo, hi = column_min(xyz[near, :2]), column_max(xyz[near, :2])
+        recent = [c for stamp, c in self.candidates
+                  if step.stamp - SHAPE_CONTEXT_SECONDS <= stamp < step.stamp]
+        context = shape_context(recent, xyz[near, :2], cfg.obstacles.feature_radius)
         ob = classify_obstacles(xyz[near], step.ground[near], step.height_above_ground[near],
                                 cfg=cfg.obstacles, rng=self._obstacle_rng,
                                 known_towers=self.towers.near(lo, hi, step.stamp),
                                 known_wires=self.wires.near(lo, hi, step.stamp),
-                                known_buildings=self.buildings.near(lo, hi, step.stamp))
+                                known_buildings=self.buildings.near(lo, hi, step.stamp),
+                                context=context)
         if step.far is not None:  # the stray points are noise, in no object
             ob = ObstacleClasses.expand(ob, ~step.far, NOISE)
         self.towers.add(ob.towers, step.stamp)
         self.wires.add(ob.wires, step.stamp)
         self.buildings.add(ob.buildings, step.stamp)
+        self.candidates.append((step.stamp, ob.candidates))
+        while (len(self.candidates) > SHAPE_CONTEXT_MESSAGES
+               or self.candidates[0][0] < step.stamp - SHAPE_CONTEXT_SECONDS):
+            self.candidates.popleft()
         t4 = time.perf_counter()
         centre = (np.asarray(step.vehicle_xyz, float)[:2] if step.vehicle_xyz is not None
                   else (lo + hi) / 2.0)
@@ -384,15 +400,26 @@ class DemPipeline:
 
     def ground_of(self, xyz: np.ndarray, *, stamp: float,
                   intensity: np.ndarray | None) -> np.ndarray:
-        """(N,) bool ground mask by the configured `dem.ground_source`."""
+        """(N,) bool ground mask by the configured `dem.ground_source`. Never a stray point
+        far from the cloud (:func:`far_points`): K-means would take one far below it for
+        ground, and its grids would span the distance."""
         if self.cfg.dem.ground_source == "detector":
             if self._ground is None:
                 self._ground = StreamingGround(self.cfg)
             g, _, _ = self._ground.classify(xyz, stamp)
             return bare_earth_of(xyz, g.ground, g.height_above_ground, self.cfg.dem)
+        from lidar_obstacles.core.ground import check_extent, far_points
         from lidar_obstacles.core.kmeans import kmeans_ground
 
-        return kmeans_ground(xyz, cfg=self.cfg.kmeans, intensity=intensity).ground
+        near = ~far_points(xyz)
+        if near.all():
+            check_extent(xyz, self.cfg.ground.cell)
+            return kmeans_ground(xyz, cfg=self.cfg.kmeans, intensity=intensity).ground
+        check_extent(xyz[near], self.cfg.ground.cell)
+        ground = np.zeros(len(xyz), bool)
+        ground[near] = kmeans_ground(xyz[near], cfg=self.cfg.kmeans, intensity=None
+                                     if intensity is None else intensity[near]).ground
+        return ground
 
     def process(self, xyz: np.ndarray, *, stamp: float = 0.0,
                 vehicle_xyz: np.ndarray | None = None,

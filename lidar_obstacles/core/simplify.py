@@ -397,7 +397,7 @@ def simplify(xyz: np.ndarray, *, cfg: SimplifyConfig, intensity: np.ndarray | No
                                f"expected ({n},)")
     clustered, note = _first_returns(return_number, n, cfg.first_returns)
     notes = [note] if note else []
-    far = far_points(arr[:, :2])
+    far = far_points(arr)
     if far.any():  # a stray return kilometres off would make the cloud look like a line
         clustered &= ~far
         notes.append(f"{int(far.sum())} stray points far from the cloud dropped")

@@ -4,15 +4,71 @@ Every output of the package (GeoTIFF DEMs, hillshades, report pictures and pages
 YAML, LAS subsets, generated config) is written to a temporary file beside its target and
 renamed over it: os.replace is atomic on one file system, so a reader never sees half a
 file and a failure (a full disk, Ctrl-C, a writer's exception) leaves the old file, or
-none, and no temporary one.
+none, and no temporary one. What is renamed over is only a file of the same kind (or an
+empty one): a folder, or a file of another kind, is the user's data.
 """
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 from typing import Callable
+
+from lidar_obstacles.errors import OutputError
+
+HEAD = 64 * 1024  # bytes of an existing file read to tell its kind
+
+
+@dataclass(frozen=True)
+class Kind:
+    """A kind of output file: its name for the error, and a test of a file's first HEAD
+    bytes (the whole file when it is shorter)."""
+
+    name: str
+    matches: Callable[[bytes], bool]
+
+
+def _starts(*magic: bytes, text: bool = False) -> Callable[[bytes], bool]:
+    """Starts with one of `magic`; for text, after white space and in any case."""
+    return lambda head: (head.lstrip().lower() if text else head).startswith(magic)
+
+
+def _yaml_mapping(head: bytes) -> bool:
+    """A whole file of YAML whose top is a block mapping, as a params file is (a JSON
+    object is a YAML mapping too, in flow style, but another kind of file)."""
+    import yaml
+
+    if len(head) == HEAD or head.lstrip().startswith(b"{"):
+        return False
+    try:
+        return isinstance(yaml.safe_load(head), dict)
+    except yaml.YAMLError:
+        return False
+
+
+TIFF = Kind("a TIFF", _starts(b"II*\0", b"MM\0*"))
+PNG = Kind("a PNG", _starts(b"\x89PNG\r\n\x1a\n"))
+LAS = Kind("a LAS/LAZ file", _starts(b"LASF"))
+JSON = Kind("JSON", _starts(b"{", b"[", text=True))
+HTML = Kind("an HTML page", _starts(b"<!doctype html", b"<html", text=True))
+YAML = Kind("a YAML mapping", _yaml_mapping)
+
+
+def check_replaceable(path: str | Path, kind: Kind) -> None:
+    """Raise OutputError unless `path` is free, an empty file or a file of `kind`.
+    Callers that work long before they write call it first, to say so at once."""
+    path = Path(path)
+    if not path.exists():
+        return
+    if path.is_file():
+        with open(path, "rb") as file:
+            head = file.read(HEAD)
+        if not head or kind.matches(head):
+            return
+    raise OutputError(f"{path} exists and is not {kind.name}: not overwriting it")
 
 
 def umask() -> int:
@@ -41,13 +97,17 @@ def _umask_round_trip() -> int:
     return mask
 
 
-def atomic_write(path: str | Path, write: Callable[[Path], None]) -> Path:
+def atomic_write(path: str | Path, write: Callable[[Path], None], *, kind: Kind | None
+                 ) -> Path:
     """Call ``write(tmp)`` on a temporary path beside ``path`` (ending in the same suffix,
     for writers that choose the format by it: .laz, .png), give the file the mode open()
     would have (0o666 minus the umask, read per file; mkstemp's are 0o600), and rename it
-    over ``path``. The temporary file is removed on any failure, and the error raised.
-    Returns ``path``."""
+    over ``path``, which must be free or of ``kind`` (:func:`check_replaceable`; None, for
+    files a developer regenerates: anything). The temporary file is removed on any
+    failure, and the error raised. Returns ``path``."""
     path = Path(path)
+    if kind is not None:
+        check_replaceable(path, kind)
     fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}",
                                 dir=path.parent if str(path.parent) else ".")
     os.close(fd)
@@ -61,6 +121,30 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> Path:
     return path
 
 
-def atomic_write_text(path: str | Path, text: str) -> Path:
+def atomic_write_text(path: str | Path, text: str, *, kind: Kind | None) -> Path:
     """``text`` as UTF-8 into ``path``, atomically (:func:`atomic_write`)."""
-    return atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+    return atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"), kind=kind)
+
+
+def atomic_folder(path: str | Path, write: Callable[[Path], None]) -> Path:
+    """Call ``write(tmp)`` on a new temporary folder beside ``path``, give the folder the
+    mode mkdir would (0o777 minus the umask; mkdtemp's is 0o700) and rename it to
+    ``path``; an existing ``path`` is swapped out only then (whether it may be replaced is
+    the caller's to judge). The temporary folder is removed on any failure, Ctrl-C and
+    SIGTERM included, and the error raised. Returns ``path``."""
+    path = Path(path)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial",
+                                dir=path.parent if str(path.parent) else "."))
+    try:
+        write(tmp)
+        os.chmod(tmp, 0o777 & ~umask())
+        if path.exists():
+            old = tmp.with_suffix(".old")
+            os.replace(path, old)
+            os.replace(tmp, path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)  # (gone once renamed)
+    return path

@@ -22,6 +22,8 @@ if TYPE_CHECKING:  # rosbags is imported on first use
     from rosbags.typesys.store import Typestore
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+# The clouds the package's nodes publish (and `replay` writes), by topic name
+OUTPUT_CLOUDS = ("ground", "obstacles", "dem", "obstacle_edges")
 ODOMETRY = "nav_msgs/msg/Odometry"
 CRS_TOPIC = "/survey_crs"  # std_msgs/String, "EPSG:nnnn" or WKT, written by las2bag
 
@@ -87,6 +89,11 @@ class BagReader:
         except Exception as exc:  # rosbags raises several types for corrupt or foreign files
             self._reader = None
             text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            if "end magic" in text.lower():  # an mcap whose recording never finished
+                text = ("the mcap file ends early (a recording stopped before it was "
+                        f"closed: {text.rstrip('.')}); `mcap recover` rebuilds what it holds")
+            elif "expected metadata file" in text.lower():
+                text = "not a bag: neither a rosbag2 folder (no metadata.yaml) nor a ROS 1 .bag"
             raise BagError(f"cannot open bag {self.path}: {text}") from None
         return self
 
@@ -110,8 +117,11 @@ class BagReader:
         return [TopicInfo(t, m, c) for (t, m), c in sorted(counts.items())]
 
     def pointcloud_topic(self, topic: str | None = None) -> str:
-        """The PointCloud2 topic to process: `topic` when given (checked), else the only
-        one, else the one with the most messages. BagError when there is none."""
+        """The PointCloud2 topic to process: `topic` when given (checked), else the one
+        with the most messages that is not one of the package's own outputs
+        (OUTPUT_CLOUDS: a replay's /ground and /obstacles hold as many messages as its
+        scans did, and taking one of them for the scan was silent). BagError when there
+        is none."""
         clouds = [t for t in self.topics() if t.msgtype == POINTCLOUD2]
         if topic is not None:
             names = [t.topic for t in clouds]
@@ -119,9 +129,15 @@ class BagReader:
                 raise BagError(f"bag {self.path} has no PointCloud2 topic '{topic}' "
                                f"(it has: {', '.join(names) or 'none'})")
             return topic
-        if not clouds or sum(t.count for t in clouds) == 0:
+        clouds = [t for t in clouds if t.count > 0]
+        if not clouds:
             raise BagError(f"bag {self.path} has no PointCloud2 messages")
-        return max(clouds, key=lambda t: t.count).topic
+        scans = [t for t in clouds if t.topic.rsplit("/", 1)[-1] not in OUTPUT_CLOUDS]
+        if not scans:
+            raise BagError(f"bag {self.path} holds only this package's outputs "
+                           f"({', '.join(t.topic for t in clouds)}): pass --topic to "
+                           "process one of them")
+        return max(scans, key=lambda t: t.count).topic
 
     def deserialize(self, record: BagRecord) -> Any:
         """A rosbags message object of a record, with the bag's own type definitions (ROS 1

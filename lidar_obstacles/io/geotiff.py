@@ -16,7 +16,7 @@ import numpy as np
 
 from lidar_obstacles.core.dem import DemGrid
 from lidar_obstacles.errors import LidarObstaclesError
-from lidar_obstacles.io.atomic import atomic_write
+from lidar_obstacles.io.atomic import PNG, TIFF, Kind, atomic_write
 
 MODEL_PIXEL_SCALE = 33550
 MODEL_TIEPOINT = 33922
@@ -35,14 +35,14 @@ class ExportError(LidarObstaclesError):
     """A DEM that cannot be written (empty grid, unwritable path)."""
 
 
-def _atomic_write(path: str | Path, write: Callable[[str], None]) -> Path:
+def _atomic_write(path: str | Path, write: Callable[[str], None], kind: Kind) -> Path:
     """`atomic_write`, with the problems a user can fix as one ExportError line."""
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise ExportError(f"cannot write {path}: folder {folder} does not exist")
     try:
-        return atomic_write(path, lambda tmp: write(str(tmp)))
+        return atomic_write(path, lambda tmp: write(str(tmp)), kind=kind)
     except OSError as exc:
         raise ExportError(f"cannot write {path}: {exc}") from None
 
@@ -98,7 +98,7 @@ def write_geotiff(path: str | Path, grid: DemGrid, *, crs_epsg: int | None,
         tifffile.imwrite(tmp, data, photometric="minisblack", extratags=tags,
                          metadata=None)
 
-    return _atomic_write(path, write)
+    return _atomic_write(path, write, TIFF)
 
 
 @dataclass(frozen=True)
@@ -169,4 +169,4 @@ def write_hillshade_png(path: str | Path, grid: DemGrid) -> Path:
     def write(tmp: str) -> None:
         Image.fromarray(rgba, mode="RGBA").save(tmp, format="PNG")
 
-    return _atomic_write(path, write)
+    return _atomic_write(path, write, PNG)

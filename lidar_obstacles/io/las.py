@@ -144,7 +144,7 @@ def write_las_subset(src: str | Path, keep: np.ndarray, out: str | Path) -> int:
     `keep` of the wrong length, or an output folder that does not exist."""
     import laspy
 
-    from lidar_obstacles.io.atomic import atomic_write
+    from lidar_obstacles.io.atomic import LAS, atomic_write
 
     src, out = Path(src), Path(out)
     if not out.parent.is_dir():
@@ -155,5 +155,5 @@ def write_las_subset(src: str | Path, keep: np.ndarray, out: str | Path) -> int:
         raise LasError(f"{src}: keep mask has {keep.shape} entries for {len(las.points)} points")
     sub = laspy.LasData(las.header)
     sub.points = las.points[keep]
-    atomic_write(out, lambda tmp: sub.write(str(tmp)))  # (LAZ by the suffix, kept)
+    atomic_write(out, lambda tmp: sub.write(str(tmp)), kind=LAS)  # (LAZ by the suffix)
     return int(keep.sum())

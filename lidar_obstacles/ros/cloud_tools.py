@@ -21,7 +21,9 @@ from scipy.spatial import cKDTree
 
 from lidar_obstacles.config import (CloudSimplifierConfig, FeaturesConfig, ObstacleDetectorConfig,
                                     load_params_file)
+from lidar_obstacles.core.ground import far_points
 from lidar_obstacles.errors import BagError, CloudFormatError, LasError, reason_key
+from lidar_obstacles.io.atomic import LAS, check_replaceable
 from lidar_obstacles.io.bags import CRS_TOPIC, POINTCLOUD2, BagReader, BagWriter
 from lidar_obstacles.ros import messages
 from lidar_obstacles.ros.offline import _progress, _serialize, cdr_of_record
@@ -40,10 +42,17 @@ def _is_las(path: Path) -> bool:
 
 
 def _check_paths(src: Path, out: Path) -> None:
+    """Bad paths, said before any work: a missing input (before whether the output suits
+    it), an output of the other kind than the input, a LAS/LAZ output over a file of
+    another kind."""
+    if not src.exists():
+        raise (LasError if _is_las(src) else BagError)(f"input not found: {src}")
     if _is_las(src) and not _is_las(out):
         raise LasError(f"a LAS/LAZ input needs a .las or .laz output, got {out}")
     if not _is_las(src) and _is_las(out):
         raise BagError(f"a bag input needs a bag output (a folder name), got {out}")
+    if _is_las(out):
+        check_replaceable(out, LAS)
 
 
 def simplify(src: Path, out: Path, *, params_file: Path | None = None,
@@ -110,9 +119,10 @@ def features(src: Path, out: Path, *, params_file: Path | None = None,
 
         prep = prepare(msg, keep_non_finite=False, max_points=2**31 - 1, pose=None,
                        transform=False)
-        finite = all_columns(np.isfinite(prep.xyz))
+        use = np.flatnonzero(all_columns(np.isfinite(prep.xyz)))
+        use = use[~far_points(prep.xyz[use])]  # stray points are no object's feature
         mask = np.zeros(len(prep.points), bool)
-        mask[finite] = gaussian_map_features(prep.xyz[finite], cfg=cfg, rng=rng).feature
+        mask[use] = gaussian_map_features(prep.xyz[use], cfg=cfg, rng=rng).feature
         hdr = messages.header(prep.stamp_ns, prep.frame_id)
         return (messages.cloud(select_points(prep.points, mask), hdr), len(prep.points),
                 int(mask.sum()))
@@ -131,12 +141,15 @@ def tiled_features(xyz: np.ndarray, *, cfg: FeaturesConfig,
     where the scan is sparser than the margin holds."""
     from lidar_obstacles.core.features import gaussian_map_features
 
+    feature = np.zeros(len(xyz), bool)
+    near_cloud = np.flatnonzero(~far_points(xyz))  # a stray kilometres off: no tile of its own
+    xyz = xyz[near_cloud]
     lo = xyz[:, :2].min(axis=0)
     ij = np.floor((xyz[:, :2] - lo) / FEATURE_TILE).astype(np.int64)
     key = ij[:, 1] * (int(ij[:, 0].max()) + 1) + ij[:, 0]
     order = np.argsort(key, kind="stable")
     cuts = np.flatnonzero(np.diff(key[order])) + 1
-    feature = np.zeros(len(xyz), bool)
+    found_here = np.zeros(len(xyz), bool)
     tree = cKDTree(xyz[:, :2])
     for tile in _progress(np.split(order, cuts), len(cuts) + 1, "features", unit="tile"):
         tlo = lo + ij[tile[0]] * FEATURE_TILE - FEATURE_MARGIN
@@ -147,7 +160,8 @@ def tiled_features(xyz: np.ndarray, *, cfg: FeaturesConfig,
         inside = np.zeros(len(xyz), bool)
         inside[tile] = True
         found = gaussian_map_features(xyz[near], cfg=cfg, rng=rng).feature
-        feature[near[found & inside[near]]] = True
+        found_here[near[found & inside[near]]] = True
+    feature[near_cloud] = found_here
     return feature
 
 
@@ -155,9 +169,11 @@ def _bag_clouds(src: Path, out: Path, *, topic: str | None, storage: str, out_to
                 keep_of: Callable[[object], tuple[object, int, int]], desc: str) -> dict:
     """Run `keep_of` (message -> (output message, points in, points out)) on every cloud of
     bag `src` and write the outputs on `out_topic` of bag `out`, other topics copied.
-    Malformed clouds are counted and skipped, as the nodes drop them."""
+    Malformed clouds are counted by kind and skipped, as the nodes drop them; the latest
+    one's error is kept in full."""
     n_in = n_out = clouds = 0
     rejected: dict[str, int] = {}
+    last_reject = None
     with BagReader(src) as reader, BagWriter(out, storage=storage) as bag:
         cloud_topic = reader.pointcloud_topic(topic)
         bag.add_topic(out_topic, POINTCLOUD2)
@@ -178,6 +194,7 @@ def _bag_clouds(src: Path, out: Path, *, topic: str | None, storage: str, out_to
                 except CloudFormatError as exc:
                     key = reason_key(str(exc))
                     rejected[key] = rejected.get(key, 0) + 1
+                    last_reject = str(exc)
                     continue
                 bag.write(out_topic, record.stamp_ns, _serialize(msg_out))
                 clouds, n_in, n_out = clouds + 1, n_in + a, n_out + b
@@ -188,4 +205,4 @@ def _bag_clouds(src: Path, out: Path, *, topic: str | None, storage: str, out_to
                            f"rejected: {rejected})")
     return {"bag": str(out), "topic": out_topic, "messages": clouds, "points_in": n_in,
             "points_out": n_out, "rejected": sum(rejected.values()),
-            "reject_reasons": rejected}
+            "reject_reasons": rejected, "last_reject": last_reject}

@@ -67,8 +67,8 @@ class DemBuilderNode(PipelineNode):
         try:
             epsg, wkt = parse_crs(self.cfg.export.crs)
             write_geotiff(path, grid, crs_epsg=epsg, crs_wkt=wkt)
-        except (LidarObstaclesError, OSError) as exc:
-            response.success, response.message = False, f"cannot write {path}: {exc}"
+        except LidarObstaclesError as exc:  # (its one line names the path or the parameter)
+            response.success, response.message = False, str(exc)
             return response
         response.success, response.message = True, f"wrote {path}"
         return response

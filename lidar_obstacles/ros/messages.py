@@ -129,8 +129,8 @@ def odometry(stamp_ns: int, frame_id: str, child_frame_id: str, position, orient
     return msg
 
 
-# The counts of clouds that gave no output, each for its own reason: any of them makes a
-# node's diagnostics WARN ("failed", a bug, makes them ERROR).
+# The counts of clouds that gave no output, each for its own reason: any of them since the
+# last report makes a node's diagnostics WARN ("failed", a bug, makes them ERROR).
 DROPPED = ("rejected", "dropped_no_pose", "dropped_superseded", "lost", "failed")
 
 
@@ -142,15 +142,23 @@ def rate_hz(stamps_s: Sequence[float]) -> float:
     return (len(stamps_s) - 1) / span if span > 0 else 0.0
 
 
+def dropped(counts: Mapping[str, int]) -> int:
+    """How many clouds gave no output, of a node's counts (`DROPPED`)."""
+    return sum(int(counts.get(k, 0)) for k in DROPPED)
+
+
 def diagnostics(hdr: Header, name: str, hardware_id: str, counts: Mapping[str, int],
                 reject_reasons: Mapping[str, int], latencies_s: Sequence[float],
-                rate: float, extra: Mapping[str, str] | None = None) -> DiagnosticArray:
+                rate: float, extra: Mapping[str, str] | None = None, *,
+                dropped_before: int = 0) -> DiagnosticArray:
     """One node's `/diagnostics` message: its status named "<name>: processing", with the
     rate (Hz), the latency percentiles of (M,) per-cloud seconds, every count and, as
     "dropped: <reason>", the count of each reason a cloud gave no output. Level ERROR
-    after a failure (a bug), WARN when clouds were dropped for any reason (`DROPPED`),
-    else OK. The nodes publish it every second; `replay` writes it every second of the
-    bag's time."""
+    after a failure (a bug), WARN when clouds were dropped (`DROPPED`) since the last
+    report, which counted `dropped_before` of them, else OK: the counts are the node's
+    whole life, and the clouds dropped while a node starts (before its subscribers
+    match, or waiting for odometry) would otherwise have left it WARN for good. The
+    nodes publish it every second; `replay` writes it every second of the bag's time."""
     lat = np.asarray(latencies_s, float) if len(latencies_s) else np.zeros(1)
     values = {"rate_hz": f"{rate:.2f}",
               "latency_p50_ms": f"{1e3 * np.percentile(lat, 50):.1f}",
@@ -158,11 +166,13 @@ def diagnostics(hdr: Header, name: str, hardware_id: str, counts: Mapping[str, i
     values.update({k: str(v) for k, v in counts.items()})
     values.update(extra or {})
     values.update({f"dropped: {k}": str(v) for k, v in reject_reasons.items()})
-    bad = sum(int(counts.get(k, 0)) for k in DROPPED)
+    bad = dropped(counts)
+    new = bad - dropped_before
     status = DiagnosticStatus(
         level=(DiagnosticStatus.ERROR if counts.get("failed") else
-               DiagnosticStatus.WARN if bad else DiagnosticStatus.OK),
+               DiagnosticStatus.WARN if new > 0 else DiagnosticStatus.OK),
         name=f"{name}: processing", hardware_id=hardware_id,
-        message=f"{bad} clouds dropped" if bad else "ok",
+        message=(f"{new} clouds dropped since the last report" if new > 0 else
+                 f"ok ({bad} clouds dropped before)" if bad else "ok"),
         values=[KeyValue(key=k, value=v) for k, v in values.items()])
     return DiagnosticArray(header=hdr, status=[status])

@@ -35,7 +35,7 @@ from lidar_obstacles.core.arrays import (release_free_memory, reuse_freed_memory
 from lidar_obstacles.errors import ConfigError, LidarObstaclesError, reason_key
 from lidar_obstacles.ros import messages
 from lidar_obstacles.ros.params import declare_config, on_parameter_change
-from lidar_obstacles.ros.stages import Pose, pose_of_odometry
+from lidar_obstacles.ros.stages import Pose, moving_frame_warning, pose_of_odometry
 
 WARN_THROTTLE_S = 5.0
 
@@ -138,6 +138,7 @@ class PipelineNode(Node):
                                       "lost": 0, "failed": 0, "points_in": 0,
                                       "points_out": 0}
         self.reject_reasons: collections.Counter[str] = collections.Counter()
+        self._dropped_reported = 0  # clouds dropped as of the last diagnostics
         self.latencies: collections.deque[float] = collections.deque(maxlen=200)
         self.recv_times: collections.deque[float] = collections.deque(maxlen=50)
         self._inbox: collections.deque[PointCloud2] = collections.deque(
@@ -228,6 +229,9 @@ class PipelineNode(Node):
         if self.cfg.use_odometry and pose is None:
             self._reject("no odometry pose near the cloud's stamp", counter="dropped_no_pose")
             return
+        warning = moving_frame_warning(msg.header.frame_id, pose, self.cfg.use_odometry)
+        if warning is not None:
+            self.get_logger().warning(warning, once=True)
         t0 = time.perf_counter()
         try:
             n_out = self.process_cloud(msg, pose)
@@ -269,7 +273,8 @@ class PipelineNode(Node):
         self.diag_pub.publish(messages.diagnostics(
             self._diag_header(), self.get_name(), self.get_fully_qualified_name(),
             self.stats, self.reject_reasons, self.latencies, messages.rate_hz(self.recv_times),
-            self.extra_diagnostics()))
+            self.extra_diagnostics(), dropped_before=self._dropped_reported))
+        self._dropped_reported = messages.dropped(self.stats)
 
     def extra_diagnostics(self) -> dict[str, str]:
         """Node-specific values for the diagnostics (the DEM's accuracy at its check

@@ -27,7 +27,7 @@ from lidar_obstacles.io.shared_pickle import (BlockPool, SharedPickle, attach, d
                                               from_shared, to_shared)
 from lidar_obstacles.ros import messages
 from lidar_obstacles.ros.stages import (DemStage, DetectorStage, DetectorWork, Pose,
-                                        pose_of_odometry)
+                                        moving_frame_warning, pose_of_odometry)
 
 STRING = "std_msgs/msg/String"
 
@@ -94,7 +94,7 @@ def simulate(out: Path, *, scene: str, seed: int, duration: float, frame: str,
             bag.write("/points", stamp_ns, _serialize(messages.cloud(f.points, hdr)))
             total += len(f.points)
     return {"bag": str(out), "messages": n_frames, "points": total, "scene": scene,
-            "frame": cloud_frame}
+            "frame": frame, "frame_id": cloud_frame}
 
 
 # --------------------------------------------------------------------------- las2bag
@@ -201,7 +201,8 @@ class ReplayStats:
     bag_seconds: float = 0.0
     wall_seconds: float = 0.0
     latencies: list[float] = field(default_factory=list)
-    reject_reasons: dict[str, int] = field(default_factory=dict)
+    reject_reasons: dict[str, int] = field(default_factory=dict)  # by kind (reason_key)
+    last_reject: str | None = None  # the latest rejected cloud's error, in full
 
     def summary(self) -> dict:
         lat = np.array(self.latencies) if self.latencies else np.zeros(1)
@@ -212,7 +213,7 @@ class ReplayStats:
                 if self.wall_seconds > 0 else None,
                 "latency_p50_ms": round(1e3 * float(np.percentile(lat, 50)), 2),
                 "latency_p95_ms": round(1e3 * float(np.percentile(lat, 95)), 2),
-                "reject_reasons": self.reject_reasons}
+                "reject_reasons": self.reject_reasons, "last_reject": self.last_reject}
 
     def counts(self) -> dict[str, int]:
         """The counts `obstacle_detector` would give in its diagnostics for these clouds."""
@@ -273,6 +274,7 @@ class DetectorDiagnostics:
     rate_hz: float
     reject_reasons: dict[str, int]
     counts: dict[str, int]
+    dropped_before: int  # clouds dropped as of the previous diagnostics
 
 
 class Done(NamedTuple):
@@ -315,6 +317,7 @@ class DemSchedule:
         self.stamps: collections.deque[float] = collections.deque(maxlen=RATE_WINDOW)
         # the clouds rejected so far (replay's, which the DEM never sees)
         self.reject_reasons: dict[str, int] = {}
+        self.dropped_reported = 0  # clouds dropped as of the last diagnostics
 
     def _due(self, stamp_ns: int, record_ns: int, end: bool = False
              ) -> list[tuple[str, int, Any]]:
@@ -345,10 +348,13 @@ class DemSchedule:
                   "processed": self.counts["processed"], "rejected": rejected - no_pose,
                   "dropped_no_pose": no_pose, "points_in": self.counts["points_in"],
                   "points_out": self.counts["points_out"]}
-        return messages.diagnostics(messages.header(stamp_ns, ""), "dem_builder",
-                                    "/dem_builder", counts, self.reject_reasons,
-                                    self.latencies, messages.rate_hz(self.stamps),
-                                    self.stage.check_values())
+        msg = messages.diagnostics(messages.header(stamp_ns, ""), "dem_builder",
+                                   "/dem_builder", counts, self.reject_reasons,
+                                   self.latencies, messages.rate_hz(self.stamps),
+                                   self.stage.check_values(),
+                                   dropped_before=self.dropped_reported)
+        self.dropped_reported = messages.dropped(counts)
+        return msg
 
     def _count(self, stats: dict, stamp_ns: int) -> None:
         """One cloud into the DEM: its stage stats (points in and out, seconds)."""
@@ -415,19 +421,24 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
         schedule.reject_reasons = stats.reject_reasons  # (the same clouds reach both)
     stamps: collections.deque[float] = collections.deque(maxlen=RATE_WINDOW)
     diagnostics_ns: int | None = None
+    dropped_reported = 0
 
     def diagnostics_due(stamp_ns: int, record_ns: int, end: bool = False):
-        nonlocal diagnostics_ns
+        nonlocal diagnostics_ns, dropped_reported
         if detector is None:
             return
         if diagnostics_ns is None and not end:
             diagnostics_ns = stamp_ns + DIAGNOSTICS_PERIOD_NS
         elif end or stamp_ns >= diagnostics_ns:  # type: ignore[operator]
             diagnostics_ns = stamp_ns + DIAGNOSTICS_PERIOD_NS
+            counts = stats.counts()
             yield DEFERRED, record_ns, DetectorDiagnostics(
-                stamp_ns, messages.rate_hz(stamps), dict(stats.reject_reasons), stats.counts())
+                stamp_ns, messages.rate_hz(stamps), dict(stats.reject_reasons), counts,
+                dropped_reported)
+            dropped_reported = messages.dropped(counts)
 
     first_ns = last_ns = None
+    warned = False  # (the moving-frame warning, once)
     n_clouds = reader.count([cloud_topic])
     bar = _progress(None, n_clouds, desc)
     t_start = time.perf_counter()
@@ -447,6 +458,11 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
             last_ns = stamp_ns
             stamps.append(stamp_ns * 1e-9)
             pose = poses.nearest(stamp_ns, max_age)
+            if not warned:
+                warning = moving_frame_warning(msg.header.frame_id, pose, use_odom)
+                if warning is not None:
+                    bar.write(f"{desc}: warning: {warning}", file=sys.stderr)
+                    warned = True
             if use_odom and pose is None:
                 stats.rejected += 1
                 stats.reject_reasons[NO_POSE] = stats.reject_reasons.get(NO_POSE, 0) + 1
@@ -470,6 +486,7 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                 stats.rejected += 1
                 key = reason_key(str(exc))
                 stats.reject_reasons[key] = stats.reject_reasons.get(key, 0) + 1
+                stats.last_reject = str(exc)
                 yield from diagnostics_due(stamp_ns, record.stamp_ns)
                 continue
             if detector is None:  # (the detector's time is counted when its work is done)
@@ -534,7 +551,7 @@ def _detector_diagnostics(due: DetectorDiagnostics, stats: ReplayStats | None):
     counts = {**due.counts, "points_out": stats.points_out if stats is not None else 0}
     return messages.diagnostics(messages.header(due.stamp_ns, ""), "obstacle_detector",
                                 "/obstacle_detector", counts, due.reject_reasons, latencies,
-                                due.rate_hz)
+                                due.rate_hz, dropped_before=due.dropped_before)
 
 
 # The worker processes of `replay`: one for the detector's second half, one for the DEM,
@@ -692,40 +709,75 @@ class _WorkerProcesses:
         self._blocks.close()
 
 
-class _BackgroundWriter:
-    """Serializes and writes on one thread, in order, awaiting the worker processes'
-    results where they come, while the caller finds the next cloud's ground. The queue is
-    short, so memory stays bounded; an error on the thread is raised in the caller."""
+class _Discarded(Exception):
+    """The output bag is not wanted: replay was stopped, or no cloud was processed."""
 
-    def __init__(self, bag: BagWriter, stats: ReplayStats, depth: int = 8) -> None:
+
+class _BackgroundWriter:
+    """Opens, writes and closes the output bag on one thread, in order, awaiting the worker
+    processes' results where they come, while the caller finds the next cloud's ground.
+    Every bag operation is on that thread because sqlite3 lets only the thread that opened
+    a database use it. The queue is short, so memory stays bounded; an error on the thread
+    (opening the bag included) is raised in the caller."""
+
+    def __init__(self, out: Path, storage: str, topics: list[tuple[str, str, bool]],
+                 stats: ReplayStats, depth: int = 8) -> None:
         import queue
         import threading
 
-        self._bag = bag
+        self._out, self._storage, self._topics = out, storage, topics
         self._stats = stats
         self._queue: queue.Queue = queue.Queue(maxsize=depth)
         self._error: BaseException | None = None
+        self._keep: bool | None = None  # set by close: finish the bag, or drop it
+        self._opened = threading.Event()
         self._thread = threading.Thread(target=self._run, name="replay-writer", daemon=True)
         self._thread.start()
+        try:
+            self._opened.wait()  # so that a bad output is said before any work
+        except BaseException:  # (Ctrl-C meanwhile)
+            self.close(keep=False)
+            raise
+        if self._error is not None:
+            self.close(keep=False)  # (raises it)
 
     def _run(self) -> None:
-        while (item := self._queue.get()) is not None:
-            if self._error is not None:
-                continue  # keep taking items so that the producer never blocks for ever
-            try:
-                for name, stamp_ns, msg in drain(item, stats=self._stats):
-                    raw = msg if isinstance(msg, bytes) else _serialize(msg)
-                    self._bag.write(name, stamp_ns, raw)
-            except BaseException as exc:  # noqa: BLE001 - handed to the caller
-                self._error = exc
+        try:
+            with BagWriter(self._out, storage=self._storage) as bag:
+                for name, msgtype, transient_local in self._topics:
+                    bag.add_topic(name, msgtype, transient_local=transient_local)
+                self._opened.set()
+                while (item := self._queue.get()) is not None:
+                    if self._error is None and self._keep is not False:
+                        self._write(bag, item)
+                # (an item skipped here is freed by _WorkerProcesses.close)
+                if self._error is not None:
+                    raise self._error
+                if not self._keep:
+                    raise _Discarded()  # BagWriter removes the partial bag
+        except _Discarded:
+            pass
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller
+            self._error = self._error or exc
+        finally:
+            self._opened.set()
+
+    def _write(self, bag: BagWriter, item: tuple[str, int, Any]) -> None:
+        try:
+            for name, stamp_ns, msg in drain(item, stats=self._stats):
+                bag.write(name, stamp_ns, msg if isinstance(msg, bytes) else _serialize(msg))
+        except BaseException as exc:  # noqa: BLE001 - the rest is skipped, then raised
+            self._error = exc
 
     def put(self, item: tuple[str, int, Any]) -> None:
         if self._error is not None:
             raise self._error
         self._queue.put(item)
 
-    def close(self) -> None:
-        """Wait for everything queued to be written; raise the thread's error, if any."""
+    def close(self, *, keep: bool) -> None:
+        """Once everything queued is taken, finish the bag under its name (keep) or remove
+        it; raise the thread's error, if any."""
+        self._keep = keep
         self._queue.put(None)
         self._thread.join()
         if self._error is not None:
@@ -743,21 +795,20 @@ def replay(src: Path, out: Path, *, topic: str | None = None, params_file: Path 
     stats = ReplayStats()
     detector = DetectorStage(det_cfg)
     dem = DemStage(dem_cfg) if with_dem else None
+    topics = [(name, msgtype, name in TRANSIENT_LOCAL) for name, msgtype in OUTPUT_TYPES.items()
+              if (name != "/obstacle_edges" or det_cfg.features.enabled)
+              and (with_dem or name not in TRANSIENT_LOCAL)]
     t_start = time.perf_counter()
-    with BagReader(src) as reader, BagWriter(out, storage=storage) as bag:
-        for name, msgtype in OUTPUT_TYPES.items():
-            if name == "/obstacle_edges" and not det_cfg.features.enabled:
-                continue
-            if with_dem or name not in TRANSIENT_LOCAL:
-                bag.add_topic(name, msgtype, transient_local=name in TRANSIENT_LOCAL)
-        for t in reader.topics():
-            if t.msgtype != POINTCLOUD2 and t.topic not in OUTPUT_TYPES:
-                bag.add_topic(t.topic, t.msgtype, transient_local=t.topic == CRS_TOPIC)
+    with BagReader(src) as reader:
+        cloud_topic = reader.pointcloud_topic(topic)
+        topics += [(t.topic, t.msgtype, t.topic == CRS_TOPIC) for t in reader.topics()
+                   if t.msgtype != POINTCLOUD2 and t.topic not in OUTPUT_TYPES]
         # (when the DEM finds its own ground, run_stages does its work here)
         workers = _WorkerProcesses(det_cfg, dem_cfg if dem is not None
                                    and dem.shares_ground_with(det_cfg) else None)
         try:
-            writer = _BackgroundWriter(bag, stats)
+            writer = _BackgroundWriter(out, storage, topics, stats)
+            keep = False
             try:
                 for name, stamp_ns, payload in run_stages(
                         reader, topic=topic, detector=detector, dem=dem, stats=stats,
@@ -765,15 +816,16 @@ def replay(src: Path, out: Path, *, topic: str | None = None, params_file: Path 
                     if name == DEFERRED and not isinstance(payload, DetectorDiagnostics):
                         payload = workers.submit(payload, detector)
                     writer.put((name, stamp_ns, payload))
+                keep = stats.messages > 0
             finally:
-                writer.close()
+                writer.close(keep=keep)
         finally:
             workers.close()
-        stats.wall_seconds = time.perf_counter() - t_start  # the writing included
-        if stats.messages == 0:
-            raise BagError(f"no cloud of {src} could be processed "
-                           f"({stats.rejected} rejected: {stats.reject_reasons})")
-    return {"bag": str(out), **stats.summary()}
+    stats.wall_seconds = time.perf_counter() - t_start  # the writing included
+    if stats.messages == 0:
+        raise BagError(f"no cloud of {src} could be processed "
+                       f"({stats.rejected} rejected: {stats.reject_reasons})")
+    return {"bag": str(out), "topic": cloud_topic, **stats.summary()}
 
 
 def cdr_of_record(reader: BagReader, record) -> bytes | None:
@@ -818,10 +870,18 @@ def export_dem(src: Path, out: Path, *, topic: str | None = None,
                params_file: Path | None = None, crs: str | None = None) -> dict:
     """Build the DEM of a whole bag offline; write a GeoTIFF and a hillshade PNG beside it."""
     from lidar_obstacles.config import parse_crs, replace
+    from lidar_obstacles.io.atomic import PNG, TIFF, check_replaceable
     from lidar_obstacles.io.geotiff import write_geotiff, write_hillshade_png
 
+    png = out.with_name(out.stem + "_hillshade.png")
+    check_replaceable(out, TIFF)  # said before the work, and before either is written
+    check_replaceable(png, PNG)
     # offline the DEM covers the whole survey, unless the params file sets `dem.extent`
     _, dem_cfg = load_configs(params_file, replace(DemBuilderConfig(), {"dem.extent": 0.0}))
+    if dem_cfg.dem.extent > 0:  # (the shipped config/dem_builder.yaml sets the live node's)
+        print(f"export-dem: warning: dem.extent is {dem_cfg.dem.extent:g} m in {params_file}: "
+              "the DEM keeps only that square around the last position; set it to 0 for "
+              "the whole survey", file=sys.stderr)
     stats = ReplayStats()
     stage = DemStage(dem_cfg)
     with BagReader(src) as reader:
@@ -829,6 +889,9 @@ def export_dem(src: Path, out: Path, *, topic: str | None = None,
         for _ in run_stages(reader, topic=topic, detector=None, dem=stage, stats=stats,
                             desc="export-dem"):
             pass
+    if stats.messages == 0:  # (said as replay says it, not as "no ground")
+        raise BagError(f"no cloud of {src} could be processed "
+                       f"({stats.rejected} rejected: {stats.reject_reasons})")
     grid = stage.grid()
     if grid is None or not np.isfinite(grid.elevation).any():
         raise BagError(f"no ground found in {src}: cannot build a DEM")
@@ -836,7 +899,6 @@ def export_dem(src: Path, out: Path, *, topic: str | None = None,
     crs_text = crs or dem_cfg.export.crs or bag_crs
     epsg, wkt = parse_crs(crs_text)
     write_geotiff(out, grid, crs_epsg=epsg, crs_wkt=wkt)
-    png = out.with_name(out.stem + "_hillshade.png")
     write_hillshade_png(png, grid)
     return {"geotiff": str(out), "hillshade": str(png), "crs": crs_text,
             "rows": int(grid.elevation.shape[0]), "cols": int(grid.elevation.shape[1]),
@@ -879,11 +941,13 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
 
     Bag topics are published relative to `namespace` (``/points`` -> ``/uav1/points``).
     Playing starts once the subscribers are matched and unchanged for `settle_s`, or after
-    `wait_s` if none come.
+    `wait_s` if none come. Ctrl-C (KeyboardInterrupt) stops it wherever it is, and is
+    raised again with the count of messages published.
     """
     import rclpy
     from rclpy.duration import Duration
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from rclpy.signals import SignalHandlerOptions
 
     if rate <= 0:
         raise BagError("--rate must be positive")
@@ -893,7 +957,9 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
             raise BagError(f"bag {src} has none of the requested topics")
         if reader.count([t.topic for t in infos]) == 0:
             raise BagError(f"bag {src} holds no message to play")
-        rclpy.init(args=None)
+        # No signal handlers of rclpy's: on SIGINT they shut the context down under a
+        # publish (RCLError), before Python's own handler stops the loop.
+        rclpy.init(args=None, signal_handler_options=SignalHandlerOptions.NO)
         node = rclpy.create_node("lidar_obstacles_player", namespace=namespace or None)
         pubs = {}
         for t in infos:
@@ -930,8 +996,8 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
             if unacked:
                 print(f"play: {', '.join(unacked)} not acknowledged by every subscriber after "
                       f"{wait_s:g} s", file=sys.stderr)
-        except KeyboardInterrupt:
-            pass
+        except KeyboardInterrupt as exc:  # (SIGTERM too, from the CLI: same type)
+            raise type(exc)(f"published: {sent}") from None
         finally:
             node.destroy_node()
             rclpy.try_shutdown()
