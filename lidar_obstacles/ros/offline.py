@@ -990,9 +990,13 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
                 if not loop:
                     break
             # Reliable delivery needs the publisher alive until the subscribers have the data:
-            # destroyed at once, the last cloud was lost.
-            unacked = [t for t, p in pubs.items()
-                       if not p.wait_for_all_acked(Duration(seconds=wait_s))]
+            # destroyed at once, the last cloud was lost. Waited for in short slices: Ctrl-C
+            # is only seen between them.
+            unacked = list(pubs)
+            deadline = time.monotonic() + wait_s
+            while unacked and time.monotonic() < deadline:
+                unacked = [t for t in unacked
+                           if not pubs[t].wait_for_all_acked(Duration(seconds=0.1))]
             if unacked:
                 print(f"play: {', '.join(unacked)} not acknowledged by every subscriber after "
                       f"{wait_s:g} s", file=sys.stderr)
