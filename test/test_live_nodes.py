@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 
@@ -566,8 +567,6 @@ def test_a_cloud_waits_for_its_late_odometry_pose(ros_node):
     # Live, the pose of a cloud can come after it (the executor was busy, a best-effort
     # pose was lost and the next one is on its way): with use_odometry the cloud waits
     # up to `odometry_wait` for a pose within `odometry_max_age`, and was dropped before.
-    import threading
-
     from rclpy.parameter import Parameter as RclpyParameter
 
     from lidar_obstacles.ros import messages
@@ -606,5 +605,42 @@ def test_a_cloud_waits_for_its_late_odometry_pose(ros_node):
         t0 = time.monotonic()
         node._handle(messages.cloud(pts, messages.header(7 * 10**9, "lidar")))
         assert time.monotonic() - t0 < 0.15 and node.stats["dropped_no_pose"] == 2
+    finally:
+        node.destroy_node()
+
+
+def test_a_parameter_change_does_not_wait_for_the_cloud_in_hand(ros_node, monkeypatch):
+    # The change waited for the stage, so a cloud that took long (a big one, or `ground.method:
+    # tin` at ~30 s per 50 000 points) held the parameter service and the whole executor
+    # (diagnostics, odometry) as long: reverting a bad setting timed out. It is answered at
+    # once now, and the stage takes it before the next cloud.
+    from rclpy.parameter import Parameter as RclpyParameter
+
+    from lidar_obstacles.ros.obstacle_detector import ObstacleDetectorNode
+
+    node = ObstacleDetectorNode()
+    try:
+        seen, started = [], threading.Event()
+
+        def slow(msg, pose):
+            seen.append(node.stage.cfg.ransac.distance_threshold)
+            started.set()
+            time.sleep(2.0)
+            return [], {"obstacles": 0}
+
+        monkeypatch.setattr(node.stage, "process", slow)
+        msg = PointCloud2(height=1, width=1, point_step=12, row_step=12, is_dense=True,
+                          data=bytes(12))
+        node._on_points(msg)
+        assert started.wait(10)
+        t0 = time.monotonic()
+        result = node.set_parameters([RclpyParameter("ransac.distance_threshold", value=0.4)])
+        assert result[0].successful and time.monotonic() - t0 < 0.5
+        node._on_points(msg)
+        deadline = time.monotonic() + 10
+        while node.stats["processed"] < 2:
+            assert time.monotonic() < deadline, node.stats
+            time.sleep(0.05)
+        assert seen == [0.3, 0.4]
     finally:
         node.destroy_node()

@@ -29,10 +29,10 @@ class DemBuilderNode(PipelineNode):
         self.create_service(Trigger, "save_dem", self._save_dem)
         self.get_logger().info("ready")
 
-    def reconfigure(self, cfg: DemBuilderConfig) -> None:
-        old_rate = self.stage.cfg.dem.publish_rate
-        self.stage.reconfigure(cfg)
-        if cfg.dem.publish_rate != old_rate:
+    def _apply_config(self, cfg: DemBuilderConfig) -> None:
+        old_rate = self.cfg.dem.publish_rate
+        super()._apply_config(cfg)
+        if cfg.dem.publish_rate != old_rate:  # (the timer is the executor's: changed here)
             self.destroy_timer(self._timer)
             self._timer = self.create_timer(1.0 / cfg.dem.publish_rate, self._publish_dem)
 

@@ -107,7 +107,8 @@ class PipelineNode(Node):
 
     Subclasses give the config class, make their stage (`self.stage`) and its publishers
     (`self.pubs`, by topic). The stage is used on the worker thread; anything else that
-    touches it (a timer, a service) holds `self.stage_lock`.
+    touches it (a timer, a service) holds `self.stage_lock`. Parameter changes reach the
+    stage on the worker thread, before the next cloud (`reconfigure`).
 
     Clouds: the subscription's callback only puts each cloud in an inbox of `input.depth`
     clouds (keep-last, as the subscription); the worker thread takes them from there, the
@@ -123,6 +124,9 @@ class PipelineNode(Node):
         super().__init__(name)
         self.cfg = declare_config(self, self.config_cls)
         self.stage_lock = threading.Lock()
+        self._config_lock = threading.Lock()
+        self._new_cfg: Any = None  # accepted, not yet given to the stage
+        self._stage_cfg = self.cfg  # the stage's
         on_parameter_change(self, lambda: self.cfg, self._apply_config)
         self.poses = PoseBuffer()
         self.create_subscription(Odometry, "odom", lambda m: self.poses.add(pose_of_odometry(m)),
@@ -152,9 +156,23 @@ class PipelineNode(Node):
 
     # ---------------------------------------------------------------- configuration
     def _apply_config(self, cfg: Any) -> None:
-        with self.stage_lock:  # (after the cloud in hand: the stage is not shared mid-cloud)
+        """An accepted parameter change, on the executor. It must not wait for the stage:
+        the cloud in hand may take seconds (a big one, `ground.method: tin`), and the
+        parameter services, diagnostics and odometry would wait as long (a revert timed
+        out). The stage takes it before the next cloud (`_take_config`)."""
+        with self._config_lock:
             self.cfg = cfg
+            self._new_cfg = cfg
+
+    def _take_config(self) -> Any:
+        """The config of the cloud about to be handled (`stage_lock` held): one set since
+        the last cloud goes to the stage first."""
+        with self._config_lock:
+            cfg, self._new_cfg = self._new_cfg, None
+        if cfg is not None:
             self.reconfigure(cfg)
+            self._stage_cfg = cfg
+        return self._stage_cfg
 
     def reconfigure(self, cfg: Any) -> None:
         """New parameters go to the stage (`self.stage`), for the next cloud."""
@@ -224,13 +242,14 @@ class PipelineNode(Node):
         super().destroy_node()
 
     def _handle(self, msg: PointCloud2) -> None:
+        cfg = self._take_config()
         stamp_ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
-        pose = self.poses.nearest(stamp_ns, self.cfg.odometry_max_age,
-                                  self.cfg.odometry_wait if self.cfg.use_odometry else 0.0)
-        if self.cfg.use_odometry and pose is None:
+        pose = self.poses.nearest(stamp_ns, cfg.odometry_max_age,
+                                  cfg.odometry_wait if cfg.use_odometry else 0.0)
+        if cfg.use_odometry and pose is None:
             self._reject("no odometry pose near the cloud's stamp", counter="dropped_no_pose")
             return
-        warning = moving_frame_warning(msg.header.frame_id, pose, self.cfg.use_odometry)
+        warning = moving_frame_warning(msg.header.frame_id, pose, cfg.use_odometry)
         if warning is not None:
             self.get_logger().warning(warning, once=True)
         t0 = time.perf_counter()
