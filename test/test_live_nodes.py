@@ -371,6 +371,50 @@ def test_a_signal_while_the_node_is_built_stops_it_cleanly_without_rclpy_handler
     assert "Fatal Python error: Segmentation fault" in log and "node_base.py" in log, log
 
 
+@pytest.mark.parametrize("second", [signal.SIGINT, signal.SIGTERM])
+def test_a_second_signal_stops_a_node_busy_with_a_cloud_at_once_and_cleanly(second, tmp_path):
+    # A stop waits up to 10 s for the cloud in hand. A second Ctrl-C during that wait raised
+    # a KeyboardInterrupt into the cleanup, and launch's SIGTERM (5 s after its SIGINT)
+    # killed the node half-way (exit -15): the node's handlers were gone by then.
+    script = tmp_path / "node.py"
+    script.write_text(textwrap.dedent("""
+        import sys, time
+        from sensor_msgs.msg import PointCloud2
+        from lidar_obstacles.ros.node_base import run_node
+        from lidar_obstacles.ros.obstacle_detector import ObstacleDetectorNode
+
+        def build():
+            node = ObstacleDetectorNode()
+
+            def slow(msg, pose):  # a cloud that takes long
+                print("busy", flush=True)
+                time.sleep(60)
+
+            node.stage.process = slow
+            node._on_points(PointCloud2(height=1, width=1, point_step=12, row_step=12,
+                                        data=bytes(12)))
+            return node
+
+        sys.exit(run_node(build, []))
+    """))
+    proc = subprocess.Popen([sys.executable, str(script)], cwd=REPO, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        while "busy" not in (line := proc.stdout.readline()):
+            assert line, "the node ended before its cloud"
+        proc.send_signal(signal.SIGINT)
+        time.sleep(1.0)
+        t0 = time.monotonic()
+        proc.send_signal(second)
+        log = proc.communicate(timeout=30)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0 and "Traceback" not in log, log
+    assert time.monotonic() - t0 < 5.0
+
+
 @pytest.mark.parametrize("args, expected", [
     (["-p", "tiling.size:=-5.0"], "tiling.size"),  # out of range
     (["-p", "tiling.sise:=40.0"], "unknown parameter 'tiling.sise'"),  # a typo

@@ -151,6 +151,7 @@ class PipelineNode(Node):
         self._inbox_lock = threading.Lock()
         self._wake = threading.Event()
         self._stopping = False
+        self.stop_now = False  # set: stop without waiting for the cloud in hand
         self._worker = threading.Thread(target=self._work, name=f"{name}-worker", daemon=True)
         self._worker.start()
 
@@ -237,8 +238,14 @@ class PipelineNode(Node):
     def destroy_node(self) -> None:
         self._stopping = True
         self._wake.set()
-        if self._worker.is_alive() and self._worker is not threading.current_thread():
-            self._worker.join(timeout=10.0)  # the cloud in hand, at most
+        if self._worker is not threading.current_thread():
+            # The cloud in hand, 10 s at most, unless asked again to stop: a second Ctrl-C,
+            # or launch's SIGTERM 5 s after its SIGINT. The worker, a daemon, is left to its
+            # cloud (its publish fails on the destroyed node, which it knows is stopping).
+            deadline = time.monotonic() + 10.0
+            while (self._worker.is_alive() and not self.stop_now
+                   and time.monotonic() < deadline):
+                self._worker.join(timeout=0.1)
         super().destroy_node()
 
     def _handle(self, msg: PointCloud2) -> None:
@@ -317,10 +324,15 @@ class StopSignals:
     Here the handler only notes the signal; the byte Python's C-level handler writes to a
     pipe wakes a thread that triggers a guard condition of the node, whose (empty)
     callback ends the executor's wait. The stop is prompt, and everything after it runs on
-    the main thread, in order."""
+    the main thread, in order.
+
+    A signal while the node stops (it waits for the cloud in hand) sets the node's
+    `stop_now`; the handlers stay until the end, so that signal neither kills the node
+    half-way (SIGTERM's default) nor raises a KeyboardInterrupt into its cleanup."""
 
     def __init__(self) -> None:
         self.received: int | None = None
+        self._node: Any = None
         self._guard: Any = None
         self._lock = threading.Lock()
         self._read_fd, self._write_fd = os.pipe()
@@ -331,6 +343,8 @@ class StopSignals:
         threading.Thread(target=self._wake, name="stop-signals", daemon=True).start()
 
     def _note(self, signum: int, frame: Any) -> None:
+        if self.received is not None and self._node is not None:
+            self._node.stop_now = True
         self.received = signum
 
     def _wake(self) -> None:
@@ -343,11 +357,16 @@ class StopSignals:
         """Wake the executor spinning `node` on a signal."""
         with self._lock:
             self._guard = node.create_guard_condition(lambda: None)
+        self._node = node
 
-    def restore(self) -> None:
-        """Back to the signal handling before; the guard condition is no longer used."""
+    def unwatch(self) -> None:
+        """The executor is no longer woken (before the node and its guard condition go)."""
         with self._lock:
             self._guard = None
+
+    def restore(self) -> None:
+        """Back to the signal handling before."""
+        self.unwatch()
         signal.set_wakeup_fd(self._previous_wakeup_fd)
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
@@ -389,9 +408,10 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
     except ExternalShutdownException:
         pass
     finally:
-        stop.restore()
+        stop.unwatch()
         executor.shutdown()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+        stop.restore()
     return 0
