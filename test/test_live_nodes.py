@@ -688,3 +688,28 @@ def test_a_parameter_change_does_not_wait_for_the_cloud_in_hand(ros_node, monkey
         assert seen == [0.3, 0.4]
     finally:
         node.destroy_node()
+
+
+def test_the_dem_is_made_off_the_executor(ros_node, monkeypatch):
+    # The publish timer made the DEM on the executor: 12 s per grid at `dem.resolution` 0.05,
+    # and for as long no parameter service answered, no diagnostics went out, no cloud came
+    # in. The worker thread makes it now; the timer only says it is due.
+    from lidar_obstacles.ros.dem_builder import DemBuilderNode
+
+    node = DemBuilderNode()
+    try:
+        made = threading.Event()
+
+        def slow() -> list:
+            time.sleep(2.0)
+            made.set()
+            return []
+
+        monkeypatch.setattr(node.stage, "dem_outputs", slow)
+        node._dirty = True  # a cloud went into the DEM
+        t0 = time.monotonic()
+        node._timer.callback()  # what the executor runs at `dem.publish_rate`
+        assert time.monotonic() - t0 < 0.5
+        assert made.wait(10)
+    finally:
+        node.destroy_node()

@@ -24,8 +24,9 @@ class DemBuilderNode(PipelineNode):
             "dem_image": self.create_publisher(Image, "dem_image", qos),
             "dem_info": self.create_publisher(MapMetaData, "dem_info", qos),
         }
-        self._dirty = False
-        self._timer = self.create_timer(1.0 / self.cfg.dem.publish_rate, self._publish_dem)
+        self._dirty = False  # clouds since the last publish
+        self._due = False  # the publish timer fired since the last publish
+        self._timer = self.create_timer(1.0 / self.cfg.dem.publish_rate, self._publish_due)
         self.create_service(Trigger, "save_dem", self._save_dem)
         self.get_logger().info("ready")
 
@@ -34,20 +35,25 @@ class DemBuilderNode(PipelineNode):
         super()._apply_config(cfg)
         if cfg.dem.publish_rate != old_rate:  # (the timer is the executor's: changed here)
             self.destroy_timer(self._timer)
-            self._timer = self.create_timer(1.0 / cfg.dem.publish_rate, self._publish_dem)
+            self._timer = self.create_timer(1.0 / cfg.dem.publish_rate, self._publish_due)
 
     def process_cloud(self, msg: PointCloud2, pose: Pose | None) -> int:
         stats = self.stage.process(msg, pose)
         self._dirty = True
         return stats["points_out"]  # the ground points that went into the DEM
 
-    def _publish_dem(self) -> None:
-        if not self._dirty:
+    def _publish_due(self) -> None:
+        """The publish timer, on the executor. The DEM is made on the worker thread: a big
+        grid takes seconds (12 s at `dem.resolution` 0.05), and the executor waited as
+        long, the parameter services, diagnostics and input with it."""
+        self._due = True
+        self.wake()
+
+    def between_clouds(self) -> None:
+        if not (self._due and self._dirty):
             return
-        with self.stage_lock:
-            self._dirty = False
-            outputs = self.stage.dem_outputs()
-        for topic, out in outputs:
+        self._due = self._dirty = False
+        for topic, out in self.stage.dem_outputs():
             self.pubs[topic].publish(out)
 
     def extra_diagnostics(self) -> dict[str, str]:

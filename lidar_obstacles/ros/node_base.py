@@ -234,6 +234,22 @@ class PipelineNode(Node):
             if msg is not None:
                 with self.stage_lock:
                     self._handle(msg)
+            try:
+                with self.stage_lock:
+                    self.between_clouds()
+            except Exception:  # noqa: BLE001 - as for a cloud: logged, and the node goes on
+                if not self._stopping and self.context.ok():
+                    self.get_logger().error(f"failed between clouds (a bug, please report "
+                                            f"it):\n{traceback.format_exc()}",
+                                            throttle_duration_sec=WARN_THROTTLE_S)
+
+    def wake(self) -> None:
+        """Have the worker thread run `between_clouds` soon (from any thread)."""
+        self._wake.set()
+
+    def between_clouds(self) -> None:
+        """The node's own work on the worker thread (`stage_lock` held), after each cloud
+        and on `wake`, off the executor: none here (the DEM builder makes its grid)."""
 
     def destroy_node(self) -> None:
         self._stopping = True
