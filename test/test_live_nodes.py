@@ -713,3 +713,27 @@ def test_the_dem_is_made_off_the_executor(ros_node, monkeypatch):
         assert made.wait(10)
     finally:
         node.destroy_node()
+
+
+def test_the_rate_falls_when_the_clouds_stop(ros_node, monkeypatch):
+    # /diagnostics reported the rate of the last 50 clouds for good: 8 s after the input had
+    # stopped, a node still said 4.8 Hz, and a flight stack watching it saw a live sensor.
+    from lidar_obstacles.ros.obstacle_detector import ObstacleDetectorNode
+
+    node = ObstacleDetectorNode()
+    try:
+        sent: list = []
+        monkeypatch.setattr(node.diag_pub, "publish", sent.append)
+
+        def rate() -> float:
+            node._publish_diagnostics()
+            return float({kv.key: kv.value for kv in sent[-1].status[0].values}["rate_hz"])
+
+        now = time.monotonic()
+        node.recv_times.extend(now - 0.05 - 0.1 * i for i in reversed(range(20)))  # 10 Hz
+        assert rate() == pytest.approx(10.0, rel=0.01)
+        node.recv_times.clear()
+        node.recv_times.extend(now - 8.0 - 0.1 * i for i in reversed(range(20)))  # 8 s ago
+        assert rate() < 2.5
+    finally:
+        node.destroy_node()

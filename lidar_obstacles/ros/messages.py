@@ -134,12 +134,19 @@ def odometry(stamp_ns: int, frame_id: str, child_frame_id: str, position, orient
 DROPPED = ("rejected", "dropped_no_pose", "dropped_superseded", "lost", "failed")
 
 
-def rate_hz(stamps_s: Sequence[float]) -> float:
-    """Messages per second over (M,) arrival times in seconds, oldest first (0 for < 2)."""
+def rate_hz(stamps_s: Sequence[float], now_s: float | None = None) -> float:
+    """Messages per second over (M,) arrival times in seconds, oldest first (0 for < 2).
+
+    now_s: the time it is reported at, on the same clock. Once no message has come for
+    longer than the mean gap, the span runs to now_s, and the rate falls towards 0: a live
+    node whose input stopped reported the last rate it had for good."""
     if len(stamps_s) < 2:
         return 0.0
     span = stamps_s[-1] - stamps_s[0]
-    return (len(stamps_s) - 1) / span if span > 0 else 0.0
+    gaps = len(stamps_s) - 1
+    if now_s is not None and span > 0 and now_s - stamps_s[-1] > span / gaps:
+        span = now_s - stamps_s[0]
+    return gaps / span if span > 0 else 0.0
 
 
 def dropped(counts: Mapping[str, int]) -> int:

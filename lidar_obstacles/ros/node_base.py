@@ -315,8 +315,9 @@ class PipelineNode(Node):
     def _publish_diagnostics(self) -> None:
         self.diag_pub.publish(messages.diagnostics(
             self._diag_header(), self.get_name(), self.get_fully_qualified_name(),
-            self.stats, self.reject_reasons, self.latencies, messages.rate_hz(self.recv_times),
-            self.extra_diagnostics(), dropped_before=self._dropped_reported))
+            self.stats, self.reject_reasons, self.latencies,
+            messages.rate_hz(self.recv_times, time.monotonic()), self.extra_diagnostics(),
+            dropped_before=self._dropped_reported))
         self._dropped_reported = messages.dropped(self.stats)
 
     def extra_diagnostics(self) -> dict[str, str]:
