@@ -737,3 +737,28 @@ def test_the_rate_falls_when_the_clouds_stop(ros_node, monkeypatch):
         assert rate() < 2.5
     finally:
         node.destroy_node()
+
+
+def test_an_integer_for_a_double_parameter_is_taken_at_runtime_as_at_start(ros_node):
+    # `ros2 param set /uav1/obstacle_detector tiling.size 30` sends an integer: it was refused
+    # ("Wrong parameter type"), while `-p tiling.size:=30` at start is 30.0
+    from rclpy.parameter import Parameter as RclpyParameter
+
+    from lidar_obstacles.ros.obstacle_detector import ObstacleDetectorNode
+
+    node = ObstacleDetectorNode()
+    try:
+        ok = node.set_parameters([RclpyParameter("tiling.size", value=30)])[0]
+        assert ok.successful, ok.reason
+        assert node.get_parameter("tiling.size").type_ == RclpyParameter.Type.DOUBLE
+        assert node.cfg.tiling.size == 30.0
+        both = node.set_parameters_atomically([RclpyParameter("tiling.overlap", value=4),
+                                               RclpyParameter("tiling.max_depth", value=3)])
+        assert both.successful and node.cfg.tiling.overlap == 4.0, both.reason
+        # still checked against the range, and a double is no integer parameter
+        far = node.set_parameters([RclpyParameter("tiling.size", value=5000)])[0]
+        assert not far.successful and "tiling.size" in far.reason
+        half = node.set_parameters([RclpyParameter("tiling.max_depth", value=2.5)])[0]
+        assert not half.successful and node.cfg.tiling.max_depth == 3
+    finally:
+        node.destroy_node()

@@ -80,6 +80,16 @@ def on_parameter_change(node: Node, get_cfg: Callable[[], Any],
     """Validate runtime updates against the schema; accepted ones take effect on the next
     message, rejected ones leave everything as it was and say why."""
 
+    doubles = {p.name for p in params_of(type(get_cfg())) if p.type is float}
+
+    def as_declared(params: list) -> list:
+        # `ros2 param set NODE tiling.size 40` sends an integer, which rclpy refuses for a
+        # double ("Wrong parameter type"); `-p tiling.size:=40` at start is 40.0
+        # (declare_config), and so is it here.
+        return [Parameter(p.name, Parameter.Type.DOUBLE, float(p.value))
+                if p.name in doubles and p.type_ == Parameter.Type.INTEGER else p
+                for p in params]
+
     def callback(params: list) -> SetParametersResult:
         ours = {p.name: p.value for p in params if not _ros_own(p.name)}
         if not ours:
@@ -91,4 +101,5 @@ def on_parameter_change(node: Node, get_cfg: Callable[[], Any],
         set_cfg(new_cfg)
         return SetParametersResult(successful=True)
 
+    node.add_pre_set_parameters_callback(as_declared)
     node.add_on_set_parameters_callback(callback)
