@@ -577,6 +577,12 @@ def test_save_dem_says_a_write_error_once(ros_node, tmp_path, monkeypatch):
             res = node._save_dem(Trigger.Request(), Trigger.Response())
             assert not res.success and res.message == expected
         assert notes.read_text() == "precious\n"
+        # a relative path is the node's working directory's: the answer says which (it was
+        # "wrote dem.tif", and where that was depended on how the node had been started)
+        monkeypatch.chdir(tmp_path)
+        node.cfg = replace(node.cfg, {"export.path": "dem.tif"})
+        res = node._save_dem(Trigger.Request(), Trigger.Response())
+        assert res.success and res.message == f"wrote {tmp_path / 'dem.tif'}"
     finally:
         node.destroy_node()
 

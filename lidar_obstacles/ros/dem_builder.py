@@ -2,6 +2,8 @@
 published as `dem`, `dem_image` and `dem_info`, saved as GeoTIFF by the `save_dem` service."""
 from __future__ import annotations
 
+import os
+
 from nav_msgs.msg import MapMetaData
 from sensor_msgs.msg import Image, PointCloud2
 from std_srvs.srv import Trigger
@@ -66,7 +68,9 @@ class DemBuilderNode(PipelineNode):
 
         with self.stage_lock:
             grid = self.stage.grid()
-        path = self.cfg.export.path
+        # Named in full in the answer: a relative one is the node's working directory's, which
+        # the caller (a launch file's) may not know.
+        path = os.path.abspath(self.cfg.export.path)
         if grid.elevation.size == 0:
             response.success, response.message = False, "no DEM yet: no ground received"
             return response
