@@ -72,6 +72,18 @@ def test_ros1_bag_is_read(tmp_path):
         assert read_points(reader.deserialize(record)).tobytes() == pts.tobytes()
 
 
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_a_rosbag2_folder_named_like_a_ros1_bag_is_read(tmp_path, storage):
+    # `las2bag survey.laz survey.bag` writes such a folder, and rosbags takes any path
+    # ending in .bag for a ROS 1 file ("Is a directory")
+    pts = _points(40)
+    _write(tmp_path / "survey.bag", [pts], storage)
+    with BagReader(tmp_path / "survey.bag") as reader:
+        assert not reader.is_ros1
+        (record,) = list(reader.records())
+        assert read_points(reader.deserialize(record)).tobytes() == pts.tobytes()
+
+
 def test_a_ros1_bag_with_a_topic_without_header_replays(tmp_path):
     # real ROS 1 bags carry /tf (tf2_msgs/TFMessage) and strings: no header to read
     from rosbags.rosbag1 import Writer as Ros1Writer

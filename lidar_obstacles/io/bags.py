@@ -85,6 +85,13 @@ class BagReader:
                 path = path.parent
         try:
             self._reader = AnyReader([path], default_typestore=typestore())
+            if path.is_dir() and not self._reader.is2:
+                # rosbags takes any path ending in .bag for a ROS 1 file, also a rosbag2
+                # folder so named (`las2bag survey.laz survey.bag` writes one): a folder
+                # is rosbag2, whatever its name
+                from rosbags.rosbag2 import Reader as Rosbag2Reader
+
+                self._reader.is2, self._reader.readers = True, [Rosbag2Reader(path)]
             self._reader.open()
         except Exception as exc:  # rosbags raises several types for corrupt or foreign files
             self._reader = None
