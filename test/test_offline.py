@@ -129,6 +129,33 @@ def test_a_replays_output_is_not_taken_for_a_scan(sim_bag, tmp_path):
     assert told["topic"] == "/obstacles" and told["messages"] > 0
 
 
+def test_replay_copies_other_topics_but_not_other_clouds_or_its_own_outputs(sim_bag, tmp_path):
+    """A flight recorded with two LiDARs and the nodes running: the second cloud topic
+    crashed the writer (KeyError), and the recorded /ground was written into the new
+    /ground beside the replay's own clouds (evaluate then counted each point twice)."""
+    from lidar_obstacles.io.bags import POINTCLOUD2, BagWriter
+
+    recorded = tmp_path / "recorded"
+    with BagReader(sim_bag) as reader, BagWriter(recorded) as bag:
+        for topic in ("/points", "/lidar2/points", "/ground"):
+            bag.add_topic(topic, POINTCLOUD2)
+        bag.add_topic("/odom", "nav_msgs/msg/Odometry")
+        for rec in reader.records(["/points", "/odom"]):
+            if rec.topic == "/odom":
+                bag.write("/odom", rec.stamp_ns, rec.raw)
+                continue
+            for topic in ("/points", "/lidar2/points", "/ground"):
+                bag.write(topic, rec.stamp_ns, rec.raw)
+    out = tmp_path / "out"
+    summary = run_cli("replay", recorded, out, "--no-dem", "--topic", "/points")
+    with BagReader(out) as reader:
+        topics = {t.topic: t.count for t in reader.topics()}
+    assert topics["/ground"] == topics["/obstacles"] == summary["messages"] == 20
+    assert topics["/odom"] == 20 and "/lidar2/points" not in topics
+    inputs = sum(len(c) for c in clouds(sim_bag, "/points"))
+    assert sum(len(c) for c in clouds(out, "/ground") + clouds(out, "/obstacles")) == inputs
+
+
 def _contents(items) -> list[tuple[str, int, bytes]]:
     """(topic, stamp, CDR) with the padding bytes zeroed: rclpy leaves them as they were in
     memory, so equal messages may differ there. The diagnostics' latencies, measured

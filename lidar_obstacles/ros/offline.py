@@ -22,7 +22,8 @@ from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
 from lidar_obstacles.core.arrays import release_free_memory, reuse_freed_memory
 from lidar_obstacles.errors import BagError, CloudFormatError, LasError, reason_key
 from lidar_obstacles.core.pipeline import GroundStep, ObstacleResult
-from lidar_obstacles.io.bags import CRS_TOPIC, ODOMETRY, POINTCLOUD2, BagReader, BagWriter, read_crs
+from lidar_obstacles.io.bags import (CRS_TOPIC, ODOMETRY, POINTCLOUD2, BagReader, BagWriter,
+                                     TopicInfo, read_crs)
 from lidar_obstacles.io.shared_pickle import (BlockPool, SharedPickle, attach, discard_shared,
                                               from_shared, to_shared)
 from lidar_obstacles.ros import messages
@@ -235,6 +236,14 @@ def load_configs(params_file: Path | None, dem_base: DemBuilderConfig | None = N
             load_params_file(params_file, DemBuilderConfig, "dem_builder", base=dem_base))
 
 
+def passed_through(reader: BagReader) -> list[TopicInfo]:
+    """The input topics `replay` copies into its output (`/odom`, `/survey_crs`, ...): not
+    the clouds, and not topics of its own outputs, which a recorded flight may hold (its
+    `/ground` or `/diagnostics`, copied, would be mixed with the new ones)."""
+    return [t for t in reader.topics()
+            if t.msgtype != POINTCLOUD2 and t.topic not in OUTPUT_TYPES]
+
+
 def _odom_topics(reader: BagReader) -> list[str]:
     return [t.topic for t in reader.topics() if t.msgtype == ODOMETRY]
 
@@ -406,8 +415,8 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
     cloud_topic = reader.pointcloud_topic(topic)
     odom = _odom_topics(reader)
     use_odom = any(s is not None and s.cfg.use_odometry for s in (detector, dem))
-    others = [t.topic for t in reader.topics() if t.topic not in (cloud_topic, *odom)]
-    wanted = [cloud_topic, *odom] + (others if passthrough else [])
+    passed = {t.topic for t in passed_through(reader)} if passthrough else set()
+    wanted = [cloud_topic, *odom, *sorted(passed.difference(odom))]
     from lidar_obstacles.core.pipeline import ObstacleDetector  # noqa: F401 (fail early)
     from lidar_obstacles.ros.node_base import PoseBuffer
 
@@ -447,8 +456,8 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
             if record.topic in odom:
                 poses.add(pose_of_odometry(reader.deserialize(record)))
             if record.topic != cloud_topic:
-                raw = cdr_of_record(reader, record)
-                if passthrough and raw is not None:
+                raw = cdr_of_record(reader, record) if record.topic in passed else None
+                if raw is not None:
                     yield record.topic, record.stamp_ns, raw
                 continue
             bar.update(1)
@@ -801,8 +810,7 @@ def replay(src: Path, out: Path, *, topic: str | None = None, params_file: Path 
     t_start = time.perf_counter()
     with BagReader(src) as reader:
         cloud_topic = reader.pointcloud_topic(topic)
-        topics += [(t.topic, t.msgtype, t.topic == CRS_TOPIC) for t in reader.topics()
-                   if t.msgtype != POINTCLOUD2 and t.topic not in OUTPUT_TYPES]
+        topics += [(t.topic, t.msgtype, t.topic == CRS_TOPIC) for t in passed_through(reader)]
         # (when the DEM finds its own ground, run_stages does its work here)
         workers = _WorkerProcesses(det_cfg, dem_cfg if dem is not None
                                    and dem.shares_ground_with(det_cfg) else None)
