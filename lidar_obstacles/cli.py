@@ -201,7 +201,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "input when several are given)")
     s.add_argument("--out", type=Path, default=Path("tuned.yaml"), help="params YAML to write")
     s.add_argument("--budget", default="10m", help="time budget, e.g. 90s, 10m, 1h")
-    s.add_argument("--trials", type=int, default=200, help="candidates at most")
+    s.add_argument("--trials", type=_between(1, 1_000_000, int), default=200,
+                   help="candidates at most")
     s.add_argument("--seed", type=int, default=0, help="random seed of the search")
     s.add_argument("--space", type=Path, default=None,
                    help="YAML narrowing the search: {name: [min, max] | [choice, ...]} "

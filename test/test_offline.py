@@ -495,6 +495,8 @@ def test_export_dem_replaces_its_own_outputs_and_nothing_else(sim_bag, tmp_path,
      "unrecognized arguments: --bogus (see lidar-obstacles replay --help)"),
     (["simulate", "OUT", "--points", "0"], "argument --points: must lie in [100, 1e+06]"),
     (["las2bag", "/nonexistent.laz", "OUT", "--frame-id", "/map"], "not a valid frame id"),
+    # (the search ran, tried nothing and blamed the budget)
+    (["tune", "/nonexistent/bag", "--trials", "0"], "argument --trials: must lie in [1, "),
 ])
 def test_bad_input_is_one_line_and_exit_2(args, expected, tmp_path):
     res = cli_subprocess(*[a.replace("OUT", str(tmp_path / "o")) for a in args])
