@@ -70,6 +70,24 @@ def test_simplify_and_features_of_a_bag(sim_bag, tmp_path):
     assert 0 < f["points_out"] < f["points_in"]  # buildings and towers have edges
 
 
+@pytest.mark.parametrize("command, topic", [("simplify", "/points_simplified"),
+                                            ("features", "/points_features")])
+def test_a_recorded_output_topic_is_replaced_not_mixed_in(command, topic, sim_bag, tmp_path):
+    """A flight recorded beside a live cloud_simplifier holds its /points_simplified: the
+    new clouds were written beside the recorded ones, each cloud twice."""
+    from lidar_obstacles.io.bags import POINTCLOUD2, BagWriter
+
+    recorded = tmp_path / "recorded"
+    with BagReader(sim_bag) as reader, BagWriter(recorded) as bag:
+        for name in ("/points", topic):
+            bag.add_topic(name, POINTCLOUD2)
+        for rec in reader.records(["/points"]):
+            for name in ("/points", topic):
+                bag.write(name, rec.stamp_ns, rec.raw)
+    summary = run_cli(command, recorded, tmp_path / "out", "--topic", "/points")
+    assert _count(tmp_path / "out", topic) == summary["messages"] == 3
+
+
 def test_simplify_counts_malformed_clouds_by_kind_and_keeps_the_last_error(sim_bag, tmp_path):
     from test_evaluate_cli import _cut_short
 

@@ -177,7 +177,9 @@ def _bag_clouds(src: Path, out: Path, *, topic: str | None, storage: str, out_to
     with BagReader(src) as reader, BagWriter(out, storage=storage) as bag:
         cloud_topic = reader.pointcloud_topic(topic)
         bag.add_topic(out_topic, POINTCLOUD2)
-        others = [t for t in reader.topics() if t.topic != cloud_topic]
+        # a recorded `out_topic` (a live simplifier's) is not copied: mixed with the new
+        # clouds, it would count each of them twice
+        others = [t for t in reader.topics() if t.topic not in (cloud_topic, out_topic)]
         for t in others:
             bag.add_topic(t.topic, t.msgtype, transient_local=t.topic == CRS_TOPIC)
         bar = _progress(None, reader.count([cloud_topic]), desc)
