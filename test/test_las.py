@@ -1,4 +1,5 @@
-"""LAS/LAZ reading: a file cut short is called truncated, whatever laspy says of it."""
+"""LAS/LAZ reading: a file cut short is called truncated, whatever laspy says of it; the
+CRS's EPSG code is that of the whole CRS, never of a part of it."""
 from __future__ import annotations
 
 import re
@@ -38,3 +39,52 @@ def test_a_truncated_las_file_is_named_as_such(tmp_path, records_left):
                                        r"says 38010 points"):
         read_las(cut)
     assert len(read_las(full).points) == 38010  # (the whole file is read as before)
+
+
+UTM32 = ('PROJCS["WGS 84 / UTM zone 32N",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",'
+         '6378137,298.257223563,AUTHORITY["EPSG","7030"]],AUTHORITY["EPSG","6326"]],'
+         'PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433],AUTHORITY["EPSG","4326"]],'
+         'PROJECTION["Transverse_Mercator"],PARAMETER["central_meridian",9],'
+         'UNIT["metre",1,AUTHORITY["EPSG","9001"]]{}]')
+
+
+def _las_with(tmp_path, vlr) -> laspy.LasData:
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.vlrs.append(vlr)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = [0.0, 1.0], [0.0, 1.0], [0.0, 1.0]
+    las.write(str(tmp_path / "crs.las"))
+    return read_las(tmp_path / "crs.las")
+
+
+@pytest.mark.parametrize("wkt, epsg", [
+    (UTM32.format(',AUTHORITY["EPSG","32632"]'), 32632),
+    # a custom projection: the last authority inside was taken, the unit's (EPSG:9001)
+    (UTM32.format(""), None),
+    ('PROJCRS["UTM 32N",BASEGEOGCRS["WGS 84",DATUM["WGS84",ELLIPSOID["WGS 84",6378137,'
+     '298.257223563]],ID["EPSG",4326]],CS[Cartesian,2],ID["EPSG",32632]]', 32632),  # WKT2
+    ('PROJCRS["custom",BASEGEOGCRS["WGS 84",DATUM["WGS84",ELLIPSOID["WGS 84",6378137,'
+     '298.257223563]],ID["EPSG",4326]],CS[Cartesian,2]]', None),  # not its base's 4326
+])
+def test_the_epsg_code_of_a_wkt_is_that_of_the_whole_crs(tmp_path, wkt, epsg):
+    from laspy.vlrs.known import WktCoordinateSystemVlr
+
+    las = _las_with(tmp_path, WktCoordinateSystemVlr(wkt))
+    assert (las.crs_wkt, las.epsg) == (wkt, epsg)
+
+
+@pytest.mark.parametrize("keys, epsg", [
+    ({1024: 1, 3072: 32632}, 32632),
+    ({1024: 2, 2048: 4326}, 4326),
+    # a user-defined projection on WGS 84 was taken for WGS 84 itself
+    ({1024: 1, 2048: 4326, 3072: 32767}, None),
+])
+def test_the_epsg_code_of_geokeys_is_the_projected_one(tmp_path, keys, epsg):
+    import struct
+
+    from laspy.vlrs.known import GeoKeyDirectoryVlr
+
+    vlr = GeoKeyDirectoryVlr()
+    words = [1, 1, 0, len(keys)] + [v for k in sorted(keys) for v in (k, 0, 1, keys[k])]
+    vlr.parse_record_data(struct.pack(f"<{len(words)}H", *words))
+    assert _las_with(tmp_path, vlr).epsg == epsg

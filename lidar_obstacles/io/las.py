@@ -59,17 +59,23 @@ def _crs_from_vlrs(header) -> tuple[str, int | None]:
             raw = getattr(vlr, "string", None) or getattr(vlr, "record_data", b"")
             wkt = raw.decode("utf-8", "replace") if isinstance(raw, bytes) else str(raw)
             wkt = wkt.strip("\x00 ")
-        elif rid == 34735:  # GeoKeyDirectory: look for ProjectedCSTypeGeoKey / GeographicType
-            for key in getattr(vlr, "geo_keys", []):
-                if key.id in (3072, 2048) and key.tiff_tag_location == 0 and key.value_offset:
-                    if key.value_offset not in (0, 32767):
-                        epsg = int(key.value_offset)
+        elif rid == 34735:  # GeoKeyDirectory: ProjectedCSTypeGeoKey, else GeographicType
+            keys = {key.id: key for key in getattr(vlr, "geo_keys", [])
+                    if key.id in (3072, 2048) and key.tiff_tag_location == 0}
+            # a user-defined projection (32767) keeps its base GeographicType (4326, say),
+            # which is not the CRS of the coordinates
+            key = keys.get(3072, keys.get(2048))
+            if key is not None and key.value_offset not in (0, 32767):
+                epsg = int(key.value_offset)
     if epsg is None and wkt:
         import re
 
-        found = re.findall(r'AUTHORITY\["EPSG","(\d+)"\]', wkt)
+        # only the authority of the whole CRS, the last item of its outermost node (WKT1
+        # AUTHORITY, WKT2 ID): a custom CRS has none there, and the last one inside names
+        # a part of it (its unit, EPSG:9001, or its base geographic CRS)
+        found = re.search(r'(?:AUTHORITY|ID)\[\s*"EPSG"\s*,\s*"?(\d+)"?\s*\]\s*\]$', wkt)
         if found:
-            epsg = int(found[-1])
+            epsg = int(found.group(1))
     return wkt, epsg
 
 
