@@ -418,6 +418,29 @@ def test_las2bag_slices_by_flight_line_without_gps_time():
     assert sum(len(g) for g in groups) == 2 * n
 
 
+@pytest.mark.parametrize("outlier", [5e9, 1e12])
+def test_las2bag_refuses_gps_times_past_what_a_stamp_holds(tmp_path, outlier):
+    """One corrupt GPS time: at 5e9 s its cloud's header stamp wrapped round to a negative
+    one; at 1e12 s the bag's clock overflowed (OverflowError, a traceback)."""
+    import laspy
+
+    las = laspy.read(str(data_file("isprs/samp11-utm.laz")))
+    survey = laspy.LasData(laspy.LasHeader(point_format=1, version="1.2"))
+    survey.header.offsets, survey.header.scales = las.header.offsets, las.header.scales
+    survey.x, survey.y, survey.z = las.x, las.y, las.z
+    gps = np.linspace(0.0, 60.0, len(las.points))
+    gps[3] = outlier
+    survey.gps_time = gps
+    survey.write(str(tmp_path / "survey.las"))
+    res = cli_subprocess("las2bag", tmp_path / "survey.las", tmp_path / "bag")
+    assert res.returncode == 2, res.stderr
+    assert res.stderr.splitlines()[-1].startswith(
+        f"lidar-obstacles las2bag: error: GPS time {outlier:.10g} s gives a stamp past 2038")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["survey.las"]
+    tiled = run_cli("las2bag", tmp_path / "survey.las", tmp_path / "bag", "--tile-size", "50")
+    assert tiled["sliced_by"] == "tiles"
+
+
 def test_las2bag_tiles(tmp_path):
     src = data_file("isprs/samp11-utm.laz")
     summary = run_cli("las2bag", src, tmp_path / "bag", "--tile-size", "50")

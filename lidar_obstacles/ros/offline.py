@@ -118,6 +118,12 @@ def _las_slices(points: np.ndarray, *, has_gps: bool, slice_seconds: float,
         starts = np.array([gps[g[0]] for g in groups])
         # Adjusted standard GPS time (large, may be negative) -> Unix; week seconds stay relative.
         base = starts + 1e9 + GPS_TO_UNIX if np.abs(starts).max() > 7 * 86400 else starts
+        # a Header's stamp holds int32 seconds: rclpy wrapped later ones round to negative
+        # stamps, and the bag's clock (int64 ns) overflowed on absurd ones
+        if base.max() >= 2**31:
+            raise LasError(f"GPS time {gps.max():.10g} s gives a stamp past 2038, later than "
+                           "a ROS time holds (corrupt GPS times?): slice by --tile-size "
+                           "instead")
         return groups, np.round(np.maximum(base, 0) * 1e9).astype(np.int64), "gps_time"
     x, y = points["x"], points["y"]
     names = points.dtype.names or ()
