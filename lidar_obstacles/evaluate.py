@@ -17,7 +17,8 @@ from typing import Any
 import numpy as np
 
 from lidar_obstacles.config import DemBuilderConfig, NodeInputConfig, ObstacleDetectorConfig
-from lidar_obstacles.errors import BagError, CloudFormatError, LidarObstaclesError, reason_key
+from lidar_obstacles.errors import (BagError, CloudFormatError, LasError, LidarObstaclesError,
+                                    reason_key)
 
 log = logging.getLogger(__name__)
 
@@ -362,6 +363,16 @@ def benchmark_isprs(folder: str | Path, *, params_file: str | Path | None = None
     from lidar_obstacles.core.metrics import ground_object_errors
 
     folder = Path(folder)
+    # said before the first sample's minute of work, not as "samp11-utm.laz/samp11-utm.laz
+    # not found" of a file, or at the first missing one after the others ran
+    if not folder.is_dir():
+        raise LasError(f"--benchmark isprs takes the folder of the 15 ISPRS samples, "
+                       f"{'not a file' if folder.exists() else 'not found'}: {folder}")
+    missing = [f"samp{s}-utm.laz" for s in ISPRS_SAMPLES
+               if not (folder / f"samp{s}-utm.laz").is_file()]
+    if missing:
+        raise LasError(f"{folder} lacks {len(missing)} of the 15 ISPRS samples: "
+                       f"{', '.join(missing)}")
     det_cfg, _ = _configs(params_file)
     rows = {}
     for s in tqdm(ISPRS_SAMPLES, desc="isprs", disable=None, file=sys.stderr):

@@ -193,6 +193,20 @@ def test_evaluate_isprs_benchmark():
     assert 0 < res["mean"]["total_error"] < 0.2
 
 
+def test_evaluate_isprs_benchmark_needs_a_folder_of_all_samples(tmp_path):
+    """A file was looked into as a folder ("samp11-utm.laz/samp11-utm.laz not found"), and
+    a missing sample was found only when its turn came, after the others had run."""
+    (tmp_path / "samp11-utm.laz").write_bytes(b"")
+    res = cli_subprocess("evaluate", "--benchmark", "isprs", tmp_path / "samp11-utm.laz")
+    assert res.returncode == 2 and res.stderr == (
+        "lidar-obstacles evaluate: error: --benchmark isprs takes the folder of the 15 ISPRS "
+        f"samples, not a file: {tmp_path / 'samp11-utm.laz'}\n")
+    res = cli_subprocess("evaluate", "--benchmark", "isprs", tmp_path)
+    assert res.returncode == 2 and res.stderr.startswith(
+        f"lidar-obstacles evaluate: error: {tmp_path} lacks 14 of the 15 ISPRS samples: "
+        "samp12-utm.laz, samp21-utm.laz, ")
+
+
 @pytest.mark.slow
 def test_tune_improves_a_mistuned_start_and_the_yaml_loads_in_the_node(tmp_path):
     src = data_file("isprs/samp51-utm.laz")
