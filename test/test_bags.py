@@ -84,6 +84,25 @@ def test_a_rosbag2_folder_named_like_a_ros1_bag_is_read(tmp_path, storage):
         assert read_points(reader.deserialize(record)).tobytes() == pts.tobytes()
 
 
+@pytest.mark.parametrize("storage, says", [
+    ("mcap", "not a ROS 1 bag but a rosbag2 mcap file: name it flight.mcap to read it"),
+    ("sqlite3", "not a ROS 1 bag but a rosbag2 sqlite3 file: name it flight.db3 to read it"),
+    (None, "not a ROS 1 bag (no '#ROSBAG V2.0' at its start)")])
+def test_a_file_named_bag_that_is_no_ros1_bag_is_said_to_be_what_it_is(
+        tmp_path, storage, says):
+    """rosbags said "'utf-8' codec can't decode byte 0x89 in position 0" of an mcap."""
+    flight = tmp_path / "flight.bag"
+    if storage is None:
+        flight.write_bytes(b"a text file\n" * 20)
+    else:
+        _write(tmp_path / "rosbag2", [_points(10)], storage)
+        (storage_file,) = (tmp_path / "rosbag2").glob("rosbag2_0.*")
+        storage_file.rename(flight)
+    with pytest.raises(BagError) as err:
+        BagReader(flight).__enter__()
+    assert str(err.value) == f"cannot open bag {flight}: {says}"
+
+
 def test_a_ros1_bag_with_a_topic_without_header_replays(tmp_path):
     # real ROS 1 bags carry /tf (tf2_msgs/TFMessage) and strings: no header to read
     from rosbags.rosbag1 import Writer as Ros1Writer

@@ -101,6 +101,8 @@ class BagReader:
                         f"closed: {text.rstrip('.')}); `mcap recover` rebuilds what it holds")
             elif "expected metadata file" in text.lower():
                 text = "not a bag: neither a rosbag2 folder (no metadata.yaml) nor a ROS 1 .bag"
+            elif path.is_file() and path.suffix == ".bag":
+                text = _ros1_misnamed(path) or text
             raise BagError(f"cannot open bag {self.path}: {text}") from None
         return self
 
@@ -250,6 +252,20 @@ class BagWriter:
                 f.rename(self._tmp / new)
                 text = text.replace(f.name, new)
         meta.write_text(text)
+
+
+def _ros1_misnamed(path: Path) -> str:
+    """What a file named .bag that rosbags cannot read as ROS 1 is, when its first bytes
+    tell (rosbags said "'utf-8' codec can't decode byte 0x89" of an mcap), else ""."""
+    with open(path, "rb") as file:
+        head = file.read(16)
+    if head.startswith(b"#ROSBAG V2.0"):
+        return ""  # a ROS 1 bag, damaged: rosbags' own words say how
+    for magic, kind, suffix in ((b"\x89MCAP", "a rosbag2 mcap file", ".mcap"),
+                                (b"SQLite format 3", "a rosbag2 sqlite3 file", ".db3")):
+        if head.startswith(magic):
+            return f"not a ROS 1 bag but {kind}: name it {path.stem}{suffix} to read it"
+    return "not a ROS 1 bag (no '#ROSBAG V2.0' at its start)"
 
 
 def _offered_qos(transient_local: bool) -> list:
