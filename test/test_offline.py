@@ -156,6 +156,27 @@ def test_replay_copies_other_topics_but_not_other_clouds_or_its_own_outputs(sim_
     assert sum(len(c) for c in clouds(out, "/ground") + clouds(out, "/obstacles")) == inputs
 
 
+def test_replay_of_stamps_that_go_back_spans_a_positive_time(sim_bag, tmp_path):
+    """Clouds stamped in reverse order: bag_seconds -2.0 and a negative real-time factor."""
+    from lidar_obstacles.io.bags import POINTCLOUD2, BagWriter, typestore
+    from lidar_obstacles.ros.messages import stamp_ns_of
+
+    backwards = tmp_path / "backwards"
+    with BagReader(sim_bag) as reader, BagWriter(backwards) as bag:
+        bag.add_topic("/points", POINTCLOUD2)
+        records = list(reader.records(["/points"]))
+        for rec, later in zip(records, reversed(records)):
+            msg = reader.deserialize(rec)
+            msg.header.stamp = reader.deserialize(later).header.stamp
+            bag.write("/points", rec.stamp_ns,
+                      bytes(typestore().serialize_cdr(msg, POINTCLOUD2)))
+    with BagReader(backwards) as reader:
+        stamps = [stamp_ns_of(reader.deserialize(r).header) for r in reader.records()]
+    assert stamps == sorted(stamps, reverse=True)
+    summary = run_cli("replay", backwards, tmp_path / "out", "--no-dem")
+    assert summary["bag_seconds"] == 2.0 and summary["real_time_factor"] > 0
+
+
 def _contents(items) -> list[tuple[str, int, bytes]]:
     """(topic, stamp, CDR) with the padding bytes zeroed: rclpy leaves them as they were in
     memory, so equal messages may differ there. The diagnostics' latencies, measured

@@ -452,7 +452,8 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                 dropped_reported)
             dropped_reported = messages.dropped(counts)
 
-    first_ns = last_ns = None
+    # the stamps the bag spans: a bag's stamps may go back (its duration came out negative)
+    lo_ns = hi_ns = last_ns = None
     warned = False  # (the moving-frame warning, once)
     n_clouds = reader.count([cloud_topic])
     bar = _progress(None, n_clouds, desc)
@@ -469,7 +470,8 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
             bar.update(1)
             msg = reader.deserialize(record)
             stamp_ns = messages.stamp_ns_of(msg.header)
-            first_ns = stamp_ns if first_ns is None else first_ns
+            lo_ns = stamp_ns if lo_ns is None else min(lo_ns, stamp_ns)
+            hi_ns = stamp_ns if hi_ns is None else max(hi_ns, stamp_ns)
             last_ns = stamp_ns
             stamps.append(stamp_ns * 1e-9)
             pose = poses.nearest(stamp_ns, max_age)
@@ -524,11 +526,11 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
     finally:
         bar.close()
         stats.wall_seconds = time.perf_counter() - t_start
-        if first_ns is not None and last_ns is not None:
+        if lo_ns is not None and hi_ns is not None:
             # A bag of n messages at rate r covers n periods, not n-1.
-            period = ((last_ns - first_ns) / max(stats.messages - 1, 1)
+            period = ((hi_ns - lo_ns) / max(stats.messages - 1, 1)
                       if stats.messages > 1 else 1e8)
-            stats.bag_seconds = (last_ns - first_ns + period) * 1e-9
+            stats.bag_seconds = (hi_ns - lo_ns + period) * 1e-9
 
 
 def drain(item: tuple[str, int, Any], *, detector: DetectorStage | None = None,
