@@ -259,6 +259,10 @@ def evaluate(src: str | Path, *, params_file: str | Path | None = None,
     if inp.kind != "replay_bag":
         latencies = run_detector(inp, det_cfg, progress=True)
     xyz, ref, pred = _concat(inp)
+    codes = np.unique(ref)
+    if len(codes) == 1:  # a raw survey's "unclassified" everywhere: figures of nothing
+        log.warning("evaluate: every reference point of %s has class %d: is it labelled? "
+                    "(kappa against a single class is 0 or undefined)", inp.name, codes[0])
     metrics: dict[str, Any] = {"source": str(src), "kind": inp.kind,
                                "clouds": len(inp.clouds),
                                "rejected": sum(inp.reject_reasons.values()),

@@ -76,6 +76,23 @@ def _cut_short(src, out, which) -> None:
             bag.write("/points", rec.stamp_ns, bytes(typestore().serialize_cdr(msg, POINTCLOUD2)))
 
 
+def test_evaluate_warns_of_a_reference_of_one_class(tmp_path, caplog):
+    """An unlabelled survey (all "unclassified") gave kappa 0 without a word."""
+    import laspy
+
+    las = laspy.read(str(data_file("isprs/samp71-utm.laz")))
+    las.classification[:] = 1
+    las.write(str(tmp_path / "raw.las"))
+    m = run_cli("evaluate", tmp_path / "raw.las", "--no-dem")
+    assert m["ground_object"]["n_ground"] == 0
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert warnings == ["evaluate: every reference point of raw.las has class 1: is it "
+                        "labelled? (kappa against a single class is 0 or undefined)"]
+    caplog.clear()
+    run_cli("evaluate", data_file("isprs/samp71-utm.laz"), "--no-dem")
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+
+
 def test_evaluate_skips_and_counts_a_malformed_cloud(tmp_path, caplog, capsys):
     # as replay does; the whole evaluation was refused, naming no message
     from lidar_obstacles.cli import main
