@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -604,6 +605,43 @@ def test_play_waits_for_subscriptions_to_settle():
     assert not offline._subscriptions_settled(_Graph([]), ["/uav1/points"], quiet_s=0.2,
                                               timeout_s=0.5)
     assert time.monotonic() - t0 >= 0.5
+
+
+def _children(pid: int) -> list[int]:
+    """The child processes of `pid` (Linux /proc)."""
+    out = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            out += [int(c) for c in (task / "children").read_text().split()]
+        except OSError:
+            pass  # (a thread gone meanwhile)
+    return out
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="Linux /proc")
+def test_replay_killed_outright_takes_its_workers_with_it(tmp_path):
+    # kill -9 (or the OOM killer) gives the parent no chance to stop its workers: they
+    # waited for work for good, holding their memory
+    run_cli("simulate", tmp_path / "f", "--duration", "10", "--seed", "4")
+    proc = subprocess.Popen([sys.executable, "-m", "lidar_obstacles.cli", "replay",
+                             str(tmp_path / "f"), str(tmp_path / "out")], cwd=REPO,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60  # until it writes (its workers are forked by then)
+    while not list(tmp_path.glob(".out.partial-*")) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    workers = [c for c in _children(proc.pid)
+               if "resource_tracker" not in Path(f"/proc/{c}/cmdline").read_text()]
+    assert proc.poll() is None and len(workers) == 2, "replay finished before it was killed"
+    proc.kill()
+    proc.wait()
+    deadline = time.monotonic() + 10
+    while any(Path(f"/proc/{w}").exists() for w in workers) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    left = [w for w in workers if Path(f"/proc/{w}").exists()
+            and Path(f"/proc/{w}/stat").read_text().split(") ")[1][0] != "Z"]
+    for w in left:
+        os.kill(w, signal.SIGKILL)
+    assert not left, "worker processes left running"
 
 
 def test_sigterm_during_replay_leaves_nothing_behind(tmp_path):

@@ -578,8 +578,11 @@ _WORKER_SCHEDULE: DemSchedule | None = None
 _WORKER_DONE = 0
 
 
-def _start_worker(det_cfg: ObstacleDetectorConfig | None, dem_cfg: DemBuilderConfig | None
-                  ) -> None:
+def _start_worker(det_cfg: ObstacleDetectorConfig | None, dem_cfg: DemBuilderConfig | None,
+                  parent_pid: int) -> None:
+    import ctypes
+    import ctypes.util
+    import os
     import signal
 
     from lidar_obstacles.core.arrays import single_threaded_blas
@@ -587,6 +590,15 @@ def _start_worker(det_cfg: ObstacleDetectorConfig | None, dem_cfg: DemBuilderCon
     global _WORKER_DETECTOR, _WORKER_SCHEDULE
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     signal.signal(signal.SIGTERM, signal.SIG_DFL)  # (not the parent's handler, inherited)
+    # A parent killed outright (kill -9, the OOM killer) cannot stop its workers, and a
+    # fork's inherited pipe ends never tell them: they waited for work for good. On Linux
+    # they get SIGTERM when it dies (PR_SET_PDEATHSIG); elsewhere they stay.
+    try:
+        ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").prctl(1, signal.SIGTERM)
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != parent_pid:  # it died before that was set
+        os._exit(0)
     single_threaded_blas()
     _WORKER_DETECTOR = DetectorStage(det_cfg) if det_cfg is not None else None
     _WORKER_SCHEDULE = DemSchedule(DemStage(dem_cfg)) if dem_cfg is not None else None
@@ -675,6 +687,7 @@ class _WorkerProcesses:
     def __init__(self, det_cfg: ObstacleDetectorConfig, dem_cfg: DemBuilderConfig | None
                  ) -> None:
         import multiprocessing
+        import os
         from concurrent.futures import ProcessPoolExecutor
         from multiprocessing import resource_tracker
 
@@ -689,7 +702,8 @@ class _WorkerProcesses:
         # made in one process and unlinked in another
         resource_tracker.ensure_running()
         self._pools = {kind: ProcessPoolExecutor(max_workers=1, mp_context=ctx,
-                                                 initializer=_start_worker, initargs=args)
+                                                 initializer=_start_worker,
+                                                 initargs=(*args, os.getpid()))
                        for kind, args in (("obstacles", (det_cfg, None)),
                                           ("dem", (None, dem_cfg))) if args != (None, None)}
         for pool in self._pools.values():
