@@ -110,6 +110,10 @@ def _las_slices(points: np.ndarray, *, has_gps: bool, slice_seconds: float,
     survey's length, or in tiles when `tile_size` is given. Returns (index arrays, stamps
     in ns, what it was sliced by: "gps_time", "flight_lines", "strips" or "tiles")."""
     gps = points["gps_time"] if has_gps else None
+    if tile_size is None and gps is not None and not np.isfinite(gps).all():
+        # (its spread is NaN then, and the survey went quietly to strips)
+        raise LasError(f"GPS time not finite at {int((~np.isfinite(gps)).sum())} of "
+                       f"{len(gps)} points (corrupt?): slice by --tile-size instead")
     if tile_size is None and gps is not None and np.ptp(gps) > 0:
         order = np.argsort(gps, kind="stable")
         key = np.floor((gps[order] - gps[order[0]]) / slice_seconds).astype(np.int64)
