@@ -82,12 +82,23 @@ def _spin_until(node, predicate, timeout: float) -> bool:
 
 
 def _call(node, srv_type, name: str, request, timeout: float = 20.0):
+    """The service's answer. Asked again every 5 s: a request sent just as the service
+    is discovered can go unanswered, its reply sent before the server has matched the
+    client (a discovery race of DDS, seen on a loaded machine; these requests are
+    idempotent)."""
     client = node.create_client(srv_type, name)
     assert client.wait_for_service(timeout_sec=timeout), f"service {name} not available"
-    future = client.call_async(request)
-    assert _spin_until(node, future.done, timeout), f"no answer from {name}"
+    deadline = time.monotonic() + timeout
+    futures = []
+    while time.monotonic() < deadline:
+        futures.append(client.call_async(request))
+        if _spin_until(node, lambda: any(f.done() for f in futures),
+                       min(5.0, deadline - time.monotonic())):
+            break
+    done = [f for f in futures if f.done()]
+    assert done, f"no answer from {name}"
     node.destroy_client(client)
-    return future.result()
+    return done[0].result()
 
 
 def _param(name: str, value) -> Parameter:
