@@ -101,7 +101,7 @@ def _xyz(xyz: Any) -> np.ndarray:
     return pts[:, :3]
 
 
-def _subsample(n: int, keep: np.ndarray, max_points: int, seed: int) -> np.ndarray:
+def _subsample(keep: np.ndarray, max_points: int, seed: int) -> np.ndarray:
     """Sorted indices: every ``keep`` point plus a uniform, seeded draw of the rest."""
     forced = np.flatnonzero(keep)
     rest = np.flatnonzero(~keep)
@@ -266,7 +266,7 @@ def cloud_views_png(
     pts = _xyz(xyz)
     codes = _codes(classes, pts.shape[0], "classes")
     emph = np.isin(codes, _EMPHASISED)
-    idx = _subsample(codes.size, emph, max_points, seed)
+    idx = _subsample(emph, max_points, seed)
     sub, sub_codes, sub_emph = pts[idx], codes[idx], emph[idx]
     colours = _code_colours(sub_codes)
     # emphasised classes last in both views; otherwise by height (top) or depth (side)
@@ -335,9 +335,9 @@ def error_views_png(
     wrong = cat > 0
     if wrong.sum() > max_points:
         # more errors than the budget: sample errors too, still every category in play
-        idx = _subsample(cat.size, np.zeros(cat.size, bool), max_points, seed)
+        idx = _subsample(np.zeros(cat.size, bool), max_points, seed)
     else:
-        idx = _subsample(cat.size, wrong, max_points, seed)
+        idx = _subsample(wrong, max_points, seed)
     sub, sub_cat = pts[idx], cat[idx]
     from matplotlib.colors import to_rgba
 
