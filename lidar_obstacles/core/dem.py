@@ -47,6 +47,7 @@ class DemGrid:
 
     @property
     def shape(self) -> tuple[int, int]:
+        """(rows, cols) of the grid."""
         return self.elevation.shape  # type: ignore[return-value]
 
     def cell_centres(self) -> np.ndarray:

@@ -499,6 +499,7 @@ class RbfNetwork:
 
     @property
     def neurons(self) -> int:
+        """J, the number of hidden units."""
         return len(self.centres)
 
     def predict(self, inputs: np.ndarray) -> np.ndarray:

@@ -74,6 +74,7 @@ class KmeansResult:
 
     @property
     def k(self) -> int:
+        """The number of clusters (rows of ``centres``)."""
         return len(self.centres)
 
 

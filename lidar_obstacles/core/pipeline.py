@@ -380,6 +380,9 @@ class DemPipeline:
         self.last_added = 0  # ground points the last cloud put into the DEM (diagnostics)
 
     def reconfigure(self, cfg: DemBuilderConfig) -> None:
+        """Apply a new config. A new grid (resolution, extent or max_cells) starts an empty
+        DEM; otherwise the DEM kept applies the new settings from its next update. A new
+        thinning seed or check-point count starts a fresh draw or check set."""
         from lidar_obstacles.core.dem import CheckPoints, RollingDem
 
         old = self.cfg

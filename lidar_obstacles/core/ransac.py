@@ -28,6 +28,12 @@ class Plane:
 
 @dataclass(frozen=True)
 class RansacResult:
+    """plane: the best plane (refitted on its inliers when that keeps as many), None when
+    there was none (fewer than 3 points, or no hypothesis within the tilt limit). inliers:
+    (N,) bool, within the distance threshold of it. trials: hypotheses drawn.
+    required_trials: the adaptive count k the best inlier ratio asked for (0 for fewer than
+    3 points)."""
+
     plane: Plane | None
     inliers: np.ndarray  # (N,) bool
     trials: int

@@ -58,6 +58,8 @@ class BagRecord:
 
 @dataclass(frozen=True)
 class TopicInfo:
+    """One topic of a bag: its name, message type and message count."""
+
     topic: str
     msgtype: str
     count: int
@@ -115,6 +117,7 @@ class BagReader:
 
     @property
     def is_ros1(self) -> bool:
+        """True for a ROS 1 .bag, False for rosbag2 (the bag must be open)."""
         return bool(self._reader.is2 is False)
 
     def topics(self) -> list[TopicInfo]:
@@ -159,6 +162,7 @@ class BagReader:
                            f"{text}") from None
 
     def count(self, topics: Sequence[str]) -> int:
+        """The number of messages on the given topics."""
         return sum(t.count for t in self.topics() if t.topic in topics)
 
     def records(self, topics: Sequence[str] | None = None) -> Iterator[BagRecord]:
