@@ -83,7 +83,8 @@ def empty_grid(resolution: float, reason: str) -> DemGrid:
 
 
 def accuracy(predicted: np.ndarray, truth: np.ndarray) -> tuple[float, float, int]:
-    """(RMSE metres, R^2, n used) over the finite pairs of predicted and true elevations."""
+    """(RMSE metres, R^2, n used) over the finite pairs of predicted and true elevations,
+    two arrays of the same shape (any), metres."""
     p = np.asarray(predicted, dtype=np.float64)
     t = np.asarray(truth, dtype=np.float64)
     ok = np.isfinite(p) & np.isfinite(t)
@@ -137,6 +138,8 @@ def thin(xyz: np.ndarray, *, cfg: ThinningConfig,
     weight 0.25 + curvature / mean curvature (see :func:`tin_curvature`), so bends, ditches
     and breaklines keep more points while flat ground still keeps some (weighted sampling
     by the Efraimidis-Spirakis keys log(u) / w, one vectorised pass).
+
+    xyz: (N, 3) float64 ground points, metres. Returns sorted indices into them.
     """
     gen = np.random.default_rng(cfg.seed if rng is None else rng)
     n = len(xyz)

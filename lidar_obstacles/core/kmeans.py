@@ -391,7 +391,7 @@ class KmeansGround:
 
 
 def intensity_problem(intensity: np.ndarray | None) -> str:
-    """Why an intensity array cannot be clustered on ("" when it can)."""
+    """Why an (N,) intensity array cannot be clustered on ("" when it can)."""
     if intensity is None:
         return "no intensity given"
     levels = len(np.unique(np.asarray(intensity)))

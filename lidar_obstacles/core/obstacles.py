@@ -123,8 +123,8 @@ class ObstacleClasses:
 
     @staticmethod
     def expand(part: "ObstacleClasses", where: np.ndarray, fill: int) -> "ObstacleClasses":
-        """The classes of a cloud of len(where) points whose points `where` (bool) are
-        `part`; the others get class `fill` and no object."""
+        """The classes of a cloud of N points whose points `where` ((N,) bool) are `part`;
+        the others get class `fill` and no object."""
         classes = np.full(len(where), fill, np.uint8)
         object_id = np.full(len(where), -1, np.int32)
         classes[where], object_id[where] = part.classes, part.object_id

@@ -226,7 +226,7 @@ class ObstacleDetector:
         """The first half of `process`: ground and height above ground, with the ground
         context of earlier clouds, which this cloud's ground then joins. Its only state is
         the context, so `replay` can run the second half in another process, one cloud
-        behind."""
+        behind. Arguments as :meth:`process`."""
         xyz = points_xyz(xyz, "obstacle detector")
         if len(xyz) == 0:
             return GroundStep(xyz, np.zeros(0, bool), np.zeros(0, np.float32), stamp,
@@ -427,7 +427,12 @@ class DemPipeline:
     def process(self, xyz: np.ndarray, *, stamp: float = 0.0,
                 vehicle_xyz: np.ndarray | None = None,
                 intensity: np.ndarray | None = None) -> dict[str, float]:
-        """Add one cloud's ground to the rolling DEM. Returns timings in seconds."""
+        """Add one cloud's ground to the rolling DEM. Returns timings in seconds.
+
+        xyz: (N, 3) float64 metres, z up. stamp: seconds. vehicle_xyz: (3,) the UAV
+        position, metres: a rolling window (`dem.extent` > 0) is centred on it (None: on
+        the ground's mean). intensity: (N,) for the K-means ground source (None: geometry
+        only)."""
         t0 = time.perf_counter()
         xyz = points_xyz(xyz, "DEM builder")
         if len(xyz) == 0:

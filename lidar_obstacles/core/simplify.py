@@ -168,8 +168,8 @@ def pca_normals(xyz: np.ndarray, *, neighbours: int) -> np.ndarray:
 
 
 def mean_spacing(xy: np.ndarray) -> float:
-    """sqrt(area of the XY convex hull / N), metres: the spacing of an even sample of the
-    same density. NaN for fewer than 3 points or no area."""
+    """sqrt(area of the XY convex hull / N) of (N, 2+) points, metres: the spacing of an
+    even sample of the same density. NaN for fewer than 3 points or no area."""
     if len(xy) < 3:
         return float("nan")
     try:
