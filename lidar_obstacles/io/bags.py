@@ -184,9 +184,10 @@ class BagReader:
 class BagWriter:
     """Write a rosbag2 (mcap by default, sqlite3 on request) atomically.
 
-    Messages are written to ``<out>.partial-<pid>`` and the folder is renamed to ``out`` on a
-    clean exit of the context; on an exception the partial folder is removed. An existing
-    ``out`` is replaced only when the new bag is complete.
+    Messages are written to a hidden ``.<name>.partial-<pid>`` folder beside ``out`` and the
+    folder is renamed to ``out`` on a clean exit of the context; on an exception the
+    partial folder is removed. An existing ``out`` is replaced only when the new bag is
+    complete.
     """
 
     def __init__(self, path: str | Path, *, storage: str = "mcap") -> None:
