@@ -103,8 +103,9 @@ def write_geotiff(path: str | Path, grid: DemGrid, *, crs_epsg: int | None,
 
 @dataclass(frozen=True)
 class GeoTiffDem:
-    """A GeoTIFF read back: elevation (rows, cols) float32 in DemGrid row order (row 0 =
-    south), origin (2,) lower-left corner, resolution, nodata text, epsg, citation."""
+    """A GeoTIFF read back: elevation (rows, cols) float32 metres in DemGrid row order
+    (row 0 = south), origin (2,) x, y of the lower-left corner, metres, resolution: cell
+    edge, metres, nodata text, epsg, citation."""
 
     elevation: np.ndarray
     origin: np.ndarray
@@ -141,8 +142,9 @@ def read_geotiff(path: str | Path) -> GeoTiffDem:
 def hillshade(elevation: np.ndarray, resolution: float, *, azimuth: float = 315.0,
               altitude: float = 45.0) -> np.ndarray:
     """(rows, cols) float64 in [0, 1] shaded relief of a DemGrid-ordered elevation (row 0 =
-    south); NaN where the elevation or a neighbour is unknown. Light from ``azimuth``
-    degrees clockwise from north, ``altitude`` degrees above the horizon."""
+    south), metres, with cells ``resolution`` metres wide; NaN where the elevation or a
+    neighbour is unknown. Light from ``azimuth`` degrees clockwise from north,
+    ``altitude`` degrees above the horizon."""
     z = np.asarray(elevation, dtype=np.float64)
     if min(z.shape) < 2:
         return np.full(z.shape, np.nan)
