@@ -647,7 +647,11 @@ def _linear_weights(n: int, block: int, nb: int) -> tuple[np.ndarray, ...]:
 
 class Bilinear:
     """Bilinear lookup of (rows = y, cols = x) grids of cell-centred values at fixed points:
-    the four corner indices and weights are computed once and reused for every grid."""
+    the four corner indices and weights are computed once and reused for every grid.
+
+    shape: (rows, cols) of the grids; origin: (2,) x, y of the lower-left corner of cell
+    (0, 0), metres; cell: cell edge, metres; xy: (M, 2) float64 points, metres (clamped
+    to the cell centres' box)."""
 
     def __init__(self, shape: tuple[int, int], origin: np.ndarray, cell: float,
                  xy: np.ndarray) -> None:
@@ -1318,7 +1322,8 @@ def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
 
 
 class GroundSurface:
-    """Piecewise-linear ground from ground points; nearest ground point outside the hull."""
+    """Piecewise-linear ground from ground points (G, 3) float64 metres (the TIN of their
+    XY); nearest ground point outside the hull."""
 
     def __init__(self, ground_xyz: np.ndarray) -> None:
         self.xyz = ground_xyz
@@ -1331,7 +1336,8 @@ class GroundSurface:
         self.tree = cKDTree(ground_xyz[:, :2]) if len(ground_xyz) else None
 
     def height(self, xy: np.ndarray) -> np.ndarray:
-        """(M,) ground height in metres; NaN when there is no ground at all."""
+        """(M,) ground height in metres at xy (M, 2) metres; NaN when there is no ground at
+        all."""
         out = np.full(len(xy), np.nan)
         if self.tree is None:
             return out

@@ -216,6 +216,7 @@ class Variogram:
     range_: float
 
     def __call__(self, h: np.ndarray) -> np.ndarray:
+        """gamma at lags h (any shape), metres -> the same shape, m^2; 0 at h = 0."""
         g = _variogram_model(self.model)(h, np.array([self.nugget, self.partial_sill,
                                                       self.range_]))
         return np.where(h > 0, g, 0.0)
