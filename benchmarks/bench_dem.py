@@ -8,7 +8,7 @@
    OrdinaryKriging (n_closest_points=32, backend='loop'). Every method is also scored on
    up to 5 000 held-out ground points (the 100 check points and up to 4 900 more of the
    points not kept: the 100 check points' RMSE is decided by 2-3 breakline points on the
-   ISPRS sites). Files with more ground than --max-ground are
+   ISPRS sites). Files with more than 50 000 ground points (12 000 with --quick) are
    cut to the disc of that many ground points around their centre (same density,
    bounded time). PyKrige computes all pairwise distances for its variogram, so it gets
    at most 5 000 of the kept points.
