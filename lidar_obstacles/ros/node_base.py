@@ -337,7 +337,7 @@ class StopSignals:
     rclpy's own handlers are not installed: on a signal they shut the context down and
     trigger the executors' guard conditions from a thread of their own, while the main
     thread, woken by the KeyboardInterrupt, destroys the node and shuts the same context
-    down. That race crashed a node with SIGSEGV on Ctrl-C (once in CI; 390 stops here did not).
+    down. That race crashed a node with SIGSEGV on Ctrl-C (once in CI; 300 stops here did not).
     Here the handler only notes the signal; the byte Python's C-level handler writes to a
     pipe wakes a thread that triggers a guard condition of the node, whose (empty)
     callback ends the executor's wait. The stop is prompt, and everything after it runs on
