@@ -494,10 +494,16 @@ def test_cloud_simplifier_node(ros_node):
     try:
         assert _spin_until(ros_node, lambda: pub.get_subscription_count() > 0, 60)
 
-        def published_and_received(count: int):
+        sent = [0]  # clouds published; each stamped with its number (x 0.1 s)
+
+        def published_and_received(first: int):
+            """Publish until an output of cloud `first` or later comes: on a loaded machine
+            an earlier cloud, published while waiting, may still be in the node."""
             def step() -> bool:
-                pub.publish(messages.cloud(pts, messages.header(len(got) * 10**8, "map")))
-                return _spin_until(ros_node, lambda: len(got) >= count, 3.0)
+                sent[0] += 1
+                pub.publish(messages.cloud(pts, messages.header(sent[0] * 10**8, "map")))
+                return _spin_until(ros_node, lambda: any(
+                    messages.stamp_ns_of(m.header) >= first * 10**8 for m in got), 3.0)
             return step
 
         assert _spin_until(ros_node, published_and_received(1), 60)
@@ -518,9 +524,10 @@ def test_cloud_simplifier_node(ros_node):
         bad = _call(ros_node, SetParameters, srv, SetParameters.Request(
             parameters=[_param("simplify.keep", 1.5)]))
         assert not bad.results[0].successful and "simplify.keep" in bad.results[0].reason
-        before = len(got)
-        assert _spin_until(ros_node, published_and_received(before + 1), 60)
-        later = read_points(got[-1]).reshape(-1)
+        after = sent[0] + 1  # the first cloud published after the change
+        assert _spin_until(ros_node, published_and_received(after), 60)
+        later = read_points(next(m for m in got
+                                 if messages.stamp_ns_of(m.header) >= after * 10**8)).reshape(-1)
         assert len(later) > 1.5 * len(first), (len(later), len(first))
     finally:
         ros_node.destroy_subscription(sub)
