@@ -22,11 +22,13 @@ def test_reductions_match_numpy(shape):
     assert np.allclose(row_norm(a), np.linalg.norm(a, axis=1))
 
 
-@pytest.mark.parametrize("n, cells", [(0, 1), (1, 1), (30000, 5000), (5000, 10**12)])
-def test_unique_ints_matches_numpy_on_small_and_large_grids(n, cells):
+@pytest.mark.parametrize("n, cells, ratio", [(0, 1, 2.0), (1, 1, 2.0), (30000, 5000, 2.0),
+                                             (5000, 10**12, 2.0), (5000, 30000, 8.0),
+                                             (5000, 30000, 2.0)])
+def test_unique_ints_matches_numpy_on_small_and_large_grids(n, cells, ratio):
     # a small grid goes through the table, a large one through np.unique: same answer
     keys = np.random.default_rng(2).integers(0, cells, n)
-    distinct, inverse = unique_ints(keys)
+    distinct, inverse = unique_ints(keys, table_ratio=ratio)
     expected, expected_inverse = np.unique(keys, return_inverse=True)
     assert np.array_equal(distinct, expected)
     assert np.array_equal(inverse, expected_inverse.ravel())

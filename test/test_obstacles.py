@@ -615,3 +615,19 @@ def test_what_clings_to_a_known_roof_joins_it_but_not_what_clings_to_that():
 
     assert blob_building(0.0) == 0.0  # nor alone: it is rough
     assert blob_building(1.0) > 0.5
+
+
+def test_voxel_ids_number_voxels_as_numpy_unique_of_rows():
+    # the table path (a compact box) and the sort path (a sparse one) both number the
+    # voxels as np.unique(axis=0) does, negative indices included
+    from lidar_obstacles.core.obstacles import _voxel_ids
+
+    rng = np.random.default_rng(3)
+    for spread in (4, 10_000):
+        ints = rng.integers(-spread, spread, (2000, 3))
+        voxel, count, index = _voxel_ids(ints)
+        rows, inverse, counts = np.unique(ints, axis=0, return_inverse=True,
+                                          return_counts=True)
+        assert np.array_equal(voxel, inverse.ravel())
+        assert np.array_equal(count, counts)
+        assert np.array_equal(index, rows)
