@@ -24,7 +24,7 @@ def test_reductions_match_numpy(shape):
 
 @pytest.mark.parametrize("n, cells, ratio", [(0, 1, 2.0), (1, 1, 2.0), (30000, 5000, 2.0),
                                              (5000, 10**12, 2.0), (5000, 30000, 8.0),
-                                             (5000, 30000, 2.0)])
+                                             (5000, 30000, 2.0), (5000, 2**23, 1e9)])
 def test_unique_ints_matches_numpy_on_small_and_large_grids(n, cells, ratio):
     # a small grid goes through the table, a large one through np.unique: same answer
     keys = np.random.default_rng(2).integers(0, cells, n)

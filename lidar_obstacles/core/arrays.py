@@ -62,6 +62,9 @@ def row_norm(a: np.ndarray) -> np.ndarray:
     return np.sqrt(total)
 
 
+TABLE_MAX = 1 << 22  # cells of unique_ints' counting table (64 MB)
+
+
 def unique_ints(keys: np.ndarray, table_ratio: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
     """np.unique(keys, return_inverse=True) of (N,) non-negative integer keys: (U,) the
     sorted distinct keys and (N,) the index of each key among them.
@@ -71,11 +74,13 @@ def unique_ints(keys: np.ndarray, table_ratio: float = 2.0) -> tuple[np.ndarray,
     table much larger than N costs more in page faults and cache misses than the sort
     saves; keys of nearby points (voxels of a scan in its order) stay cheaper up to ~8 x N
     (a forest strip's 51 000 points in 0.75 m voxels, a box of 268 000: 0.8 ms, sorted
-    2.7 ms; in 0.25 m voxels, a box of 7 100 000: 41 ms, sorted 2.7 ms)."""
+    2.7 ms; in 0.25 m voxels, a box of 7 100 000: 41 ms, sorted 2.7 ms). Never a table of
+    more than TABLE_MAX cells (16 bytes each, while it lives): a survey tile's millions
+    of points are sorted."""
     if len(keys) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     size = int(keys.max()) + 1
-    if size > table_ratio * len(keys):
+    if size > min(table_ratio * len(keys), TABLE_MAX):
         distinct, inverse = np.unique(keys, return_inverse=True)
         return distinct, inverse.ravel()
     present = np.flatnonzero(np.bincount(keys, minlength=size))
