@@ -1023,8 +1023,7 @@ def _objects(xyz: np.ndarray, hag: np.ndarray, classes: np.ndarray,
     np.maximum.at(hmax, inv, hag[sel])
     np.minimum.at(hmin, inv, hag[sel])
     # class of an object: its most common point class
-    cls_count = np.zeros((k, 256), np.int64)
-    np.add.at(cls_count, (inv, classes[sel]), 1)
+    cls_count = np.bincount(inv * 256 + classes[sel], minlength=k * 256).reshape(k, 256)
     cls = cls_count.argmax(axis=1)
     return [ObstacleObject(int(ids[i]), int(cls[i]), int(counts[i]), lo[i], hi[i],
                            float(hmax[i]), float(hmin[i]))
