@@ -1,6 +1,10 @@
 """Atomic outputs replace only a file of their own kind: a folder, or a file of another
-kind, is the user's data."""
+kind, is the user's data. A writer killed outright leaves its temporary output only until
+the next write of the same target."""
 from __future__ import annotations
+
+import subprocess
+import sys
 
 import pytest
 
@@ -46,3 +50,59 @@ def test_an_empty_file_is_replaced_and_a_folder_never(tmp_path):
     with pytest.raises(OutputError, match="exists and is not a TIFF"):
         check_replaceable(folder, TIFF)
     check_replaceable(tmp_path / "new.tif", TIFF)  # nothing there: fine
+
+
+# The three ways an output is written, each as a statement that writes `out` and calls
+# hold() in the middle of it: a file (GeoTIFF, PNG, LAS...), a folder (evaluate's report)
+# and a bag.
+WRITERS = {
+    "file": "atomic_write(out, lambda tmp: (tmp.write_bytes(b'II*\\0'), hold()), kind=TIFF)",
+    "folder": "atomic_folder(out, lambda tmp: ((tmp / 'report.html').touch(), hold()))",
+    "bag": "with BagWriter(out) as bag:\n    hold()",
+}
+SETUP = """import sys, time
+from pathlib import Path
+from lidar_obstacles.io.atomic import TIFF, atomic_folder, atomic_write
+from lidar_obstacles.io.bags import BagWriter
+out = Path(sys.argv[1])
+def hold():
+    if len(sys.argv) > 2:
+        print("writing", flush=True)
+        time.sleep(600)
+"""
+
+
+def _writer(writer: str, out, *, hold: bool) -> subprocess.Popen:
+    """A process writing `out`, stopped halfway (hold) once it says so, or done."""
+    proc = subprocess.Popen([sys.executable, "-c", SETUP + WRITERS[writer], str(out),
+                             *(["hold"] if hold else [])], stdout=subprocess.PIPE, text=True)
+    if hold:
+        assert proc.stdout.readline() == "writing\n", "the writer failed before writing"
+    return proc
+
+
+@pytest.mark.parametrize("writer", sorted(WRITERS))
+def test_a_writer_killed_outright_leaves_its_partial_until_the_next_write(writer, tmp_path):
+    out = tmp_path / ("dem.tif" if writer == "file" else "out")
+    killed, running = _writer(writer, out, hold=True), _writer(writer, out, hold=True)
+    try:
+        killed.kill()  # kill -9: no chance to remove its partial output
+        killed.wait()
+
+        def partial(proc):
+            return [p.name for p in tmp_path.iterdir()
+                    if p.name.startswith(f".{out.name}.partial-{proc.pid}")]
+
+        assert len(partial(killed)) == len(partial(running)) == 1
+        # the dead writer's partials of other targets are not this write's to tidy
+        others = {f".x{out.name}.partial-{killed.pid}", f".{out.name}x.partial-{killed.pid}"}
+        for name in others:
+            (tmp_path / name).mkdir()
+        assert _writer(writer, out, hold=False).wait() == 0
+        # the killed writer's partial is gone; the one being written stays
+        assert {p.name for p in tmp_path.iterdir()} == {out.name, *partial(running), *others}
+    finally:
+        running.kill()
+        running.wait()
+    assert _writer(writer, out, hold=False).wait() == 0  # (and now its partial goes too)
+    assert {p.name for p in tmp_path.iterdir()} == {out.name, *others}

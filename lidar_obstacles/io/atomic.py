@@ -6,10 +6,16 @@ renamed over it: os.replace is atomic on one file system, so a reader never sees
 file and a failure (a full disk, Ctrl-C, a writer's exception) leaves the old file, or
 none, and no temporary one. What is renamed over is only a file of the same kind (or an
 empty one): a folder, or a file of another kind, is the user's data.
+
+A writer killed outright (kill -9, the OOM killer, a power cut) cannot remove its
+temporary output, so each is named ``.NAME.partial-PID...`` after its target and its
+writer's process, and the next writer of the same target removes those whose process is
+gone (:func:`remove_stale_partials`).
 """
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import tempfile
 from dataclasses import dataclass
@@ -71,6 +77,55 @@ def check_replaceable(path: str | Path, kind: Kind) -> None:
     raise OutputError(f"{path} exists and is not {kind.name}: not overwriting it")
 
 
+def partial_prefix(path: Path) -> str:
+    """The start of the name of this process's temporary outputs of `path`:
+    ``.NAME.partial-PID`` (a bag folder's whole name; a file or report folder's is followed
+    by ``-`` and mkstemp's 8 random characters, then the file's suffix)."""
+    return f".{path.name}.partial-{os.getpid()}"
+
+
+def _alive(pid: int) -> bool:
+    """Whether process `pid` may be running: only a PID known to be gone makes a temporary
+    output stale. One of another user is alive too (PermissionError), and so is a number
+    that is no PID (0 is a process group to os.kill; one too big for it)."""
+    if pid <= 0:
+        return True
+    try:
+        os.kill(pid, 0)  # signal 0: no signal sent, only whether the process exists
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
+
+
+def remove_stale_partials(path: Path) -> None:
+    """Remove the temporary outputs of `path` (``.NAME.partial-PID...`` beside it, files
+    or folders) whose writer's process is gone, so that a writer killed outright leaves
+    them only until the next write of the same target. One whose process is alive is
+    another writer at work and stays; so do the temporary outputs of other targets, and
+    anything that cannot be removed (this is tidying, never a reason to fail)."""
+    folder = path.parent if str(path.parent) else Path(".")
+    head = f".{path.name}.partial-"
+    # the PID, then nothing (a bag), or mkstemp's random part and the target's suffix
+    rest = re.compile(rf"(\d+)(?:-[a-z0-9_]{{8}}{re.escape(path.suffix)})?")
+    try:
+        entries = [e for e in os.scandir(folder) if e.name.startswith(head)]
+    except OSError:
+        return
+    for entry in entries:
+        found = rest.fullmatch(entry.name[len(head):])
+        if found is None or _alive(int(found.group(1))):
+            continue
+        if entry.is_dir(follow_symlinks=False):
+            shutil.rmtree(entry.path, ignore_errors=True)
+        else:
+            try:
+                os.unlink(entry.path)
+            except OSError:
+                pass  # (gone meanwhile, another writer tidying too; or not ours to remove)
+
+
 def umask() -> int:
     """The process umask, read without changing it.
 
@@ -108,7 +163,8 @@ def atomic_write(path: str | Path, write: Callable[[Path], None], *, kind: Kind 
     path = Path(path)
     if kind is not None:
         check_replaceable(path, kind)
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}",
+    remove_stale_partials(path)
+    fd, name = tempfile.mkstemp(prefix=partial_prefix(path) + "-", suffix=path.suffix,
                                 dir=path.parent if str(path.parent) else ".")
     os.close(fd)
     tmp = Path(name)
@@ -133,13 +189,15 @@ def atomic_folder(path: str | Path, write: Callable[[Path], None]) -> Path:
     the caller's to judge). The temporary folder is removed on any failure, Ctrl-C and
     SIGTERM included, and the error raised. Returns ``path``."""
     path = Path(path)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial",
+    remove_stale_partials(path)
+    tmp = Path(tempfile.mkdtemp(prefix=partial_prefix(path) + "-",
                                 dir=path.parent if str(path.parent) else "."))
     try:
         write(tmp)
         os.chmod(tmp, 0o777 & ~umask())
         if path.exists():
-            old = tmp.with_suffix(".old")
+            head = f".{path.name}.partial-"
+            old = tmp.with_name(f".{path.name}.old-{tmp.name.removeprefix(head)}")
             os.replace(path, old)
             os.replace(tmp, path)
             shutil.rmtree(old, ignore_errors=True)

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 from lidar_obstacles.errors import BagError
+from lidar_obstacles.io.atomic import partial_prefix, remove_stale_partials
 
 if TYPE_CHECKING:  # rosbags is imported on first use
     from rosbags.typesys.store import Typestore
@@ -187,7 +188,8 @@ class BagWriter:
     Messages are written to a hidden ``.<name>.partial-<pid>`` folder beside ``out`` and the
     folder is renamed to ``out`` on a clean exit of the context; on an exception the
     partial folder is removed. An existing ``out`` is replaced only when the new bag is
-    complete.
+    complete. The partial folders of ``out`` whose writer was killed outright are removed
+    when the next one starts (:func:`~lidar_obstacles.io.atomic.remove_stale_partials`).
     """
 
     def __init__(self, path: str | Path, *, storage: str = "mcap") -> None:
@@ -195,7 +197,7 @@ class BagWriter:
             raise BagError(f"unknown bag storage '{storage}' (use mcap or sqlite3)")
         self.path = Path(path)
         self.storage = storage
-        self._tmp = self.path.with_name(f".{self.path.name}.partial-{os.getpid()}")
+        self._tmp = self.path.with_name(partial_prefix(self.path))
         self._writer: Any = None
         self._conns: dict[str, Any] = {}
 
@@ -207,6 +209,7 @@ class BagWriter:
         # Only a bag is replaced: a folder of something else, or a file, is the user's data.
         if self.path.exists() and not (self.path / "metadata.yaml").is_file():
             raise BagError(f"{self.path} exists and is not a bag: not overwriting it")
+        remove_stale_partials(self.path)
         try:
             if self._tmp.exists():
                 shutil.rmtree(self._tmp)
