@@ -138,6 +138,41 @@ def test_features_of_a_las_file(tmp_path):
     assert _rows(kept.points) <= _rows(full.points)
 
 
+def test_a_las_file_of_no_points_gives_an_empty_result_or_one_line(tmp_path, capsys):
+    """`features` of a few points finds none and writes a LAS file of 0 points, which is
+    valid: `simplify` and `features` take it (0 points in, a LAS/LAZ of 0 points out, the
+    header kept); `evaluate` and `las2bag` can do nothing with it and say so in one line
+    with exit status 2 (no traceback, no output)."""
+    import laspy
+
+    from lidar_obstacles.cli import main
+
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales, header.offsets = [0.001] * 3, [500_000.0, 5_000_000.0, 0.0]
+    few = laspy.LasData(header)
+    few.x, few.y, few.z = 500_000.0 + np.arange(5.0), 5_000_000.0 + np.zeros(5), np.ones(5)
+    few.write(tmp_path / "few.las")
+    summary = run_cli("features", tmp_path / "few.las", tmp_path / "none.las")
+    assert (summary["points_in"], summary["feature_points"]) == (5, 0)
+    none = tmp_path / "none.las"
+    for command, name, count in (("simplify", "s.laz", "points_out"),
+                                 ("features", "f.las", "feature_points")):
+        summary = run_cli(command, none, tmp_path / name)
+        assert (summary["points_in"], summary[count]) == (0, 0), summary
+        assert summary.get("reduction", summary.get("share")) == 0.0
+        out = laspy.read(tmp_path / name)
+        assert len(out.points) == 0 and out.header.point_format.id == 3
+        assert list(out.header.offsets) == list(header.offsets)
+    assert len(read_las(none, allow_empty=True).points) == 0
+    capsys.readouterr()
+    for args in (("evaluate", none), ("las2bag", none, tmp_path / "bag")):
+        assert main([str(a) for a in args]) == 2
+        err = capsys.readouterr().err
+        assert err.splitlines() == [f"lidar-obstacles {args[0]}: error: LAS file has no "
+                                    f"points: {none}"], err
+    assert not (tmp_path / "bag").exists()
+
+
 def test_tiled_features_match_the_whole_cloud_inside_the_tiles():
     """Tiles with a margin give each point the neighbours it has in the whole survey: boxes
     across the 100 m tile borders get the same feature points as in one piece."""

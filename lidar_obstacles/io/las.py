@@ -115,11 +115,14 @@ def _read_laspy(path: Path) -> LasData:
         raise LasError(f"{what}: {exc}".splitlines()[0]) from None
 
 
-def read_las(path: str | Path) -> LasCloud:
+def read_las(path: str | Path, *, allow_empty: bool = False) -> LasCloud:
     """Read a LAS or LAZ file into a :class:`LasCloud`.
 
-    Raises LasError (one line naming the file and the problem) for a missing, unreadable
-    or empty file.
+    Raises LasError (one line naming the file and the problem) for a missing or unreadable
+    file, and for one without points unless `allow_empty`. A LAS file of 0 points is valid
+    (`features` writes one when no point is a feature), but most callers can do nothing
+    with it and say so in that line; those that can (a filter of the points: 0 in, 0 out)
+    ask for it.
     """
     path = Path(path)
     if not path.is_file():
@@ -127,7 +130,7 @@ def read_las(path: str | Path) -> LasCloud:
                        else f"LAS file not found: {path}")
     las = _read_laspy(path)
     n = len(las.points)
-    if n == 0:
+    if n == 0 and not allow_empty:
         raise LasError(f"LAS file has no points: {path}")
     names = set(las.point_format.dimension_names)
     dtype = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]

@@ -67,7 +67,8 @@ def simplify(src: Path, out: Path, *, params_file: Path | None = None,
     _check_paths(src, out)
     t0 = time.perf_counter()
     if _is_las(src):
-        las = read_las(src)
+        las = read_las(src, allow_empty=True)  # (0 points in, 0 out: `features` makes such)
+        n = len(las.points)
         names = las.points.dtype.names or ()
         # Offline, the TIN raster correlation of the result with the input is worth its
         # second or so: it is the paper's measure of what the simplification kept.
@@ -77,8 +78,8 @@ def simplify(src: Path, out: Path, *, params_file: Path | None = None,
             return_number=las.points["return_number"] if "return_number" in names else None,
             rng=np.random.default_rng(cfg.simplify.seed))
         kept = write_las_subset(src, result.keep, out)
-        return {"output": str(out), "points_in": len(las.points), "points_out": kept,
-                "reduction": 1.0 - kept / len(las.points), "method": cfg.simplify.method,
+        return {"output": str(out), "points_in": n, "points_out": kept,
+                "reduction": 1.0 - kept / n if n else 0.0, "method": cfg.simplify.method,
                 "k": result.k, "r": result.r if np.isfinite(result.r) else None,
                 "reason": result.reason,
                 "seconds": time.perf_counter() - t0}
@@ -90,7 +91,8 @@ def simplify(src: Path, out: Path, *, params_file: Path | None = None,
 
     summary = _bag_clouds(src, out, topic=topic, storage=storage,
                           out_topic="/points_simplified", keep_of=keep_of, desc="simplify")
-    summary["reduction"] = 1.0 - summary["points_out"] / max(summary["points_in"], 1)
+    n_in = summary["points_in"]
+    summary["reduction"] = 1.0 - summary["points_out"] / n_in if n_in else 0.0
     return {**summary, "method": cfg.simplify.method, "seconds": time.perf_counter() - t0}
 
 
@@ -106,11 +108,13 @@ def features(src: Path, out: Path, *, params_file: Path | None = None,
     rng = np.random.default_rng(cfg.seed)
     t0 = time.perf_counter()
     if _is_las(src):
-        las = read_las(src)
+        # 0 points in, 0 out: a file with no feature point, which `features` itself writes
+        las = read_las(src, allow_empty=True)
+        n = len(las.points)
         feature = tiled_features(las.xyz, cfg=cfg, rng=rng)
         kept = write_las_subset(src, feature, out)
-        return {"output": str(out), "points_in": len(las.points), "feature_points": kept,
-                "share": kept / len(las.points), "seconds": time.perf_counter() - t0}
+        return {"output": str(out), "points_in": n, "feature_points": kept,
+                "share": kept / n if n else 0.0, "seconds": time.perf_counter() - t0}
 
     def keep_of(msg) -> tuple[object, int, int]:
         from lidar_obstacles.core.arrays import all_columns
@@ -144,6 +148,8 @@ def tiled_features(xyz: np.ndarray, *, cfg: FeaturesConfig,
     feature = np.zeros(len(xyz), bool)
     near_cloud = np.flatnonzero(~far_points(xyz))  # a stray kilometres off: no tile of its own
     xyz = xyz[near_cloud]
+    if len(xyz) == 0:  # (an empty file: no tile, and no corner to start them from)
+        return feature
     lo = xyz[:, :2].min(axis=0)
     ij = np.floor((xyz[:, :2] - lo) / FEATURE_TILE).astype(np.int64)
     key = ij[:, 1] * (int(ij[:, 0].max()) + 1) + ij[:, 0]
