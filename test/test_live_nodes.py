@@ -567,6 +567,30 @@ def test_a_bug_on_one_cloud_does_not_take_the_node_down(ros_node, monkeypatch):
         node.destroy_node()
 
 
+@pytest.mark.parametrize("module, cls", [("obstacle_detector", "ObstacleDetectorNode"),
+                                         ("dem_builder", "DemBuilderNode"),
+                                         ("cloud_simplifier", "CloudSimplifierNode")])
+def test_a_node_counts_the_finite_points_of_an_organized_cloud(ros_node, module, cls):
+    """The diagnostics' points_in are the points processed, as `replay` counts them: an
+    organized cloud's NaN points (no return) are none (width x height counted them)."""
+    import importlib
+
+    from lidar_obstacles.ros import messages
+
+    node = getattr(importlib.import_module(f"lidar_obstacles.ros.{module}"), cls)()
+    try:
+        rng = np.random.default_rng(0)
+        pts = np.zeros((4, 500), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+        pts["x"], pts["y"] = rng.uniform(0, 30, (4, 500)), rng.uniform(0, 30, (4, 500))
+        pts["z"] = rng.normal(0, 0.05, (4, 500))
+        pts[3, 100:] = (np.nan, np.nan, np.nan)  # the last row's missing returns
+        node._handle(messages.cloud(pts, messages.header(10**9, "map")))
+        assert node.stats["processed"] == 1, (node.stats, dict(node.reject_reasons))
+        assert node.stats["points_in"] == 3 * 500 + 100
+    finally:
+        node.destroy_node()
+
+
 def test_save_dem_says_a_write_error_once(ros_node, tmp_path, monkeypatch):
     # it said "cannot write X: cannot write X: folder ... does not exist"
     from lidar_obstacles.config import replace
@@ -606,7 +630,7 @@ def test_clouds_the_busy_node_drops_are_counted(ros_node, monkeypatch):
     try:
         def slow(msg, pose):
             time.sleep(0.3)
-            return [], {"obstacles": 0}
+            return [], {"points_in": 1, "obstacles": 0}
 
         monkeypatch.setattr(node.stage, "process", slow)
         msg = PointCloud2(height=1, width=1, point_step=12, row_step=12, is_dense=True,
@@ -686,7 +710,7 @@ def test_a_parameter_change_does_not_wait_for_the_cloud_in_hand(ros_node, monkey
             seen.append(node.stage.cfg.ransac.distance_threshold)
             started.set()
             time.sleep(2.0)
-            return [], {"obstacles": 0}
+            return [], {"points_in": 1, "obstacles": 0}
 
         monkeypatch.setattr(node.stage, "process", slow)
         msg = PointCloud2(height=1, width=1, point_step=12, row_step=12, is_dense=True,

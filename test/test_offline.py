@@ -274,6 +274,37 @@ def test_replay_writes_each_nodes_diagnostics_on_the_bags_clock(sim_bag, tmp_pat
     assert int(dem["check_n"]) > 0 and float(dem["check_rmse_m"]) < 0.2
 
 
+def test_every_summary_counts_the_finite_points_of_an_organized_cloud(sim_bag, tmp_path):
+    """An organized cloud (height > 1) holds NaN points where the scanner had no return:
+    no command counts them as points. replay and export-dem counted width x height, where
+    evaluate, simplify and features counted the finite points."""
+    from lidar_obstacles.io.bags import POINTCLOUD2, BagWriter
+
+    organized, finite = tmp_path / "organized", 0
+    with BagReader(sim_bag) as reader, BagWriter(organized) as bag:
+        bag.add_topic("/points", POINTCLOUD2)
+        for rec in list(reader.records(["/points"]))[:3]:
+            msg = reader.deserialize(rec)
+            points = np.array(read_points(msg)).reshape(-1)
+            width = 1000  # rows of 1000, the last one and one more padded with NaN points
+            grid = np.zeros((len(points) // width + 2) * width, points.dtype)
+            for axis in "xyz":
+                grid[axis] = np.nan
+            grid[:len(points)] = points
+            cloud = offline.messages.cloud(grid.reshape(-1, width), msg.header)
+            assert cloud.height > 1 and cloud.width * cloud.height > len(points) + width
+            bag.write("/points", rec.stamp_ns, offline._serialize(cloud))
+            finite += len(points)
+    replayed = run_cli("replay", organized, tmp_path / "out")
+    assert replayed["points"] == finite
+    diag = _diagnostics(tmp_path / "out")["obstacle_detector: processing"]
+    assert int(diag[-1][2]["points_in"]) == finite  # (as the node counts them)
+    assert run_cli("export-dem", organized, tmp_path / "dem.tif")["points"] == finite
+    assert run_cli("evaluate", organized, "--no-dem")["n_points"] == finite
+    assert run_cli("simplify", organized, tmp_path / "simple")["points_in"] == finite
+    assert run_cli("features", organized, tmp_path / "feat")["points_in"] == finite
+
+
 def _changed_clouds(sim_bag: Path, out: Path, changes: list) -> Path:
     """A bag of the first len(changes) clouds of sim_bag, each points array passed through
     its change (a function that edits it in place)."""

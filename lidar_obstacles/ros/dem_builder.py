@@ -39,10 +39,11 @@ class DemBuilderNode(PipelineNode):
             self.destroy_timer(self._timer)
             self._timer = self.create_timer(1.0 / cfg.dem.publish_rate, self._publish_due)
 
-    def process_cloud(self, msg: PointCloud2, pose: Pose | None) -> int:
+    def process_cloud(self, msg: PointCloud2, pose: Pose | None) -> tuple[int, int]:
         stats = self.stage.process(msg, pose)
         self._dirty = True
-        return stats["points_out"]  # the ground points that went into the DEM
+        # the cloud's finite points, and the ground points that went into the DEM
+        return stats["points_in"], stats["points_out"]
 
     def _publish_due(self) -> None:
         """The publish timer, on the executor. The DEM is made on the worker thread: a big

@@ -277,7 +277,7 @@ class PipelineNode(Node):
             self.get_logger().warning(warning, once=True)
         t0 = time.perf_counter()
         try:
-            n_out = self.process_cloud(msg, pose)
+            n_in, n_out = self.process_cloud(msg, pose)
         except LidarObstaclesError as exc:
             self._reject(str(exc))
             return
@@ -293,17 +293,19 @@ class PipelineNode(Node):
             return
         self.latencies.append(time.perf_counter() - t0)
         self.stats["processed"] += 1
-        self.stats["points_in"] += int(msg.width) * int(msg.height)
+        self.stats["points_in"] += int(n_in)
         self.stats["points_out"] += int(n_out)
 
-    def process_cloud(self, msg: PointCloud2, pose: Pose | None) -> int:
+    def process_cloud(self, msg: PointCloud2, pose: Pose | None) -> tuple[int, int]:
         """Run the stage on one cloud and publish what it returns, each message on
-        `self.pubs[topic]`; the points out (the stats' `out_key`) go to the diagnostics.
+        `self.pubs[topic]`; the points in and out go to the diagnostics: the points the
+        stage processed (the finite ones: an organized cloud's NaN padding, its missing
+        returns, are no points; `replay` counts the same) and the stats' `out_key`.
         Stages that publish on their own schedule (the DEM) override this."""
         outputs, stats = self.stage.process(msg, pose)
         for topic, out in outputs:
             self.pubs[topic].publish(out)
-        return stats[self.out_key]
+        return stats["points_in"], stats[self.out_key]
 
     def _reject(self, reason: str, counter: str = "rejected") -> None:
         self.stats[counter] += 1

@@ -383,10 +383,13 @@ class DemSchedule:
         self.latencies.append(stats["seconds"])
         self.stamps.append(stamp_ns * 1e-9)
 
-    def add_cloud(self, msg, pose: Pose | None, stamp_ns: int, record_ns: int) -> list:
-        """A cloud whose ground the DEM finds itself (`dem.ground_source`)."""
-        self._count(self.stage.process(msg, pose), stamp_ns)
-        return self._due(stamp_ns, record_ns)
+    def add_cloud(self, msg, pose: Pose | None, stamp_ns: int, record_ns: int
+                  ) -> tuple[list, int]:
+        """A cloud whose ground the DEM finds itself (`dem.ground_source`): the items due,
+        and the points of the cloud it took (the finite ones)."""
+        stats = self.stage.process(msg, pose)
+        self._count(stats, stamp_ns)
+        return self._due(stamp_ns, record_ns), stats["points_in"]
 
     def finish(self, stamp_ns: int, record_ns: int) -> list[tuple[str, int, Any]]:
         """The end of the bag: the DEM as it stands and the last diagnostics."""
@@ -492,8 +495,12 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
             t0 = time.perf_counter()
             try:
                 deferred: list = []
+                # the points processed, as the nodes count them: the finite ones (width x
+                # height counted an organized cloud's NaN padding, its missing returns)
+                n_points = 0
                 if detector is not None:
                     work = detector.start(msg, pose)
+                    n_points = int(np.count_nonzero(work.finite))
                     deferred.append(ObstacleWork(record.stamp_ns, work))
                     if share_ground:
                         # the detector's ground is all the DEM needs: nothing to parse
@@ -501,8 +508,11 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                             work.stamp_ns, record.stamp_ns, work.frame_id,
                             pose.position if pose is not None else None, *work.dem_ground(),
                             dict(stats.reject_reasons)))
-                dem_items = (schedule.add_cloud(msg, pose, stamp_ns, record.stamp_ns)
-                             if schedule is not None else [])
+                dem_items: list = []
+                if schedule is not None:
+                    dem_items, dem_points = schedule.add_cloud(msg, pose, stamp_ns,
+                                                               record.stamp_ns)
+                    n_points = n_points if detector is not None else dem_points
             except CloudFormatError as exc:
                 stats.rejected += 1
                 key = reason_key(str(exc))
@@ -515,7 +525,7 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
             stats.messages += 1
             if stats.messages % 100 == 0:
                 release_free_memory()  # as the nodes do every 10 s
-            stats.points += int(msg.width) * int(msg.height)
+            stats.points += n_points
             for job in deferred:
                 yield DEFERRED, record.stamp_ns, job
             yield from dem_items

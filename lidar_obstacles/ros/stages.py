@@ -204,7 +204,9 @@ class DetectorStage:
             edges = np.zeros(n, bool)
             edges[finite] = result.edges
             out.append(("obstacle_edges", messages.cloud(select_points(out_points, edges), hdr)))
-        stats = {"points_in": n, "ground": int(ground.sum()), "obstacles": int((~ground).sum()),
+        # the points processed: the finite ones (kept non-finite ones only pass through)
+        stats = {"points_in": int(np.count_nonzero(finite)), "ground": int(ground.sum()),
+                 "obstacles": int((~ground).sum()),
                  "objects": len(result.objects), "timings": dict(result.timings),
                  "seconds": work.seconds + seconds + time.perf_counter() - t0,
                  "classes": classes}
