@@ -2,6 +2,10 @@
 
 Each subcommand prints a JSON summary on stdout; progress bars go to stderr. Bad input of
 any kind ends with one line on stderr naming the problem and exit status 2.
+
+This module is what the console script imports before it calls :func:`main`, where Ctrl-C is
+caught: it imports only the standard library's light modules, so that the heavy ones
+(numpy, rclpy, ... ~0.3 s) are imported inside main and an interrupt then ends as any other.
 """
 from __future__ import annotations
 
@@ -10,8 +14,7 @@ import re
 import sys
 from pathlib import Path
 
-from lidar_obstacles.core.arrays import reuse_freed_memory, single_threaded_blas
-from lidar_obstacles.errors import LidarObstaclesError
+from lidar_obstacles.errors import LidarObstaclesError  # (imports only re)
 
 SCENES = ("mixed", "corridor", "urban", "forest")
 
@@ -278,7 +281,9 @@ def _on_sigterm(signum: int, frame: object) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Run a command; its exit status. A reader of stdout that stops early (`| head`) ends
-    it quietly, as SIGPIPE ends other tools: status 141, no traceback."""
+    it quietly, as SIGPIPE ends other tools: status 141, no traceback. Ctrl-C (SIGTERM)
+    before the command has begun, while its modules are imported, ends it as during the
+    command: one line, status 130 (143), no traceback."""
     import os
 
     try:
@@ -290,10 +295,22 @@ def main(argv: list[str] | None = None) -> int:
         # stdout to /dev/null, so that Python's own flush at exit finds no pipe to fail on
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
+    except KeyboardInterrupt as exc:  # before _main's own handler: no command to name yet
+        terminated = isinstance(exc, _Terminated)
+        print(f"lidar-obstacles: {'terminated' if terminated else 'interrupted'}",
+              file=sys.stderr)
+        return 143 if terminated else 130
 
 
 def _main(argv: list[str] | None) -> int:
     import signal
+
+    # Ctrl-C as Python has it, also where the shell started the command in the background
+    # with SIGINT ignored: `kill -INT` stops it as Ctrl-C does. First, so that the imports
+    # below stop the same way (main catches what comes before the command's own try).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    from lidar_obstacles.core.arrays import reuse_freed_memory, single_threaded_blas  # numpy
 
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
@@ -301,10 +318,6 @@ def _main(argv: list[str] | None) -> int:
         parser.commands[args.command].error(f"unrecognized arguments: {' '.join(extra)}")
     single_threaded_blas()
     reuse_freed_memory()
-    # Ctrl-C as Python has it, also where the shell started the command in the background
-    # with SIGINT ignored: `kill -INT` stops it as Ctrl-C does
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         summary = run(args)
     except LidarObstaclesError as exc:

@@ -1,11 +1,15 @@
-"""The command line's --help: what the README promises of it."""
+"""The command line's --help: what the README promises of it; its exit on a closed pipe and
+on Ctrl-C at start."""
 from __future__ import annotations
 
 import argparse
 import os
 import re
+import signal
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -74,3 +78,49 @@ def test_a_reader_that_stops_early_ends_the_command_quietly(args, tmp_path):
                           cwd=REPO, stdout=write, stderr=subprocess.PIPE, text=True, timeout=120)
     os.close(write)
     assert proc.stderr == "" and proc.returncode == (0 if "--help" in args else 141)
+
+
+# What pip's console script `lidar-obstacles` runs (where it is not installed)
+CONSOLE_SCRIPT = "import sys\nfrom lidar_obstacles.cli import main\nsys.exit(main())\n"
+
+
+@pytest.mark.parametrize("delay", [0.0, 0.01, 0.03, 0.1, 0.3])
+def test_ctrl_c_while_the_modules_are_imported_is_one_line_and_exit_130(delay, tmp_path):
+    """Ctrl-C in the first ~0.3 s, while Python imports the command's modules (numpy, rclpy
+    ...), ends it as Ctrl-C during the command does: one line, status 130, no traceback.
+
+    The SIGINT goes `delay` s after the first heavy import has begun (-X importtime prints
+    each module as it is imported: numpy's first, or the package's own algorithms'), which
+    cli.py used to import before main could catch anything. The moment is the process's,
+    not a clock's, so a loaded machine cannot move the signal out of the imports; they take
+    ~0.3 s, so the delays land in them and in the command. Before that moment Python starts
+    (site and its .pth files), imports cli.py's few standard-library modules and calls
+    main: a signal in those few milliseconds is Python's to report, no package can catch
+    it."""
+    exe = Path(sys.executable).parent / "lidar-obstacles"
+    script = [str(exe)] if exe.is_file() else ["-c", CONSOLE_SCRIPT]
+    proc = subprocess.Popen([sys.executable, "-X", "importtime", *script, "simulate",
+                             str(tmp_path / "bag"), "--duration", "600"],
+                            cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True)
+    seen: list[str] = []
+    try:
+        for line in proc.stderr:  # "import time: self | cumulative | module"
+            seen.append(line)
+            module = line.rsplit("|", 1)[-1].strip()
+            if module.split(".")[0] == "numpy" or module.startswith("lidar_obstacles.core"):
+                break
+        else:
+            pytest.fail("the CLI ended before its modules were imported:\n" + "".join(seen))
+        time.sleep(delay)
+        proc.send_signal(signal.SIGINT)
+        _, rest = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    err = "".join(seen) + rest
+    said = [x for x in err.splitlines() if not x.startswith("import time:")]
+    assert proc.returncode == 130 and "Traceback" not in err, err[-3000:]
+    assert said in (["lidar-obstacles: interrupted"],
+                    ["lidar-obstacles simulate: interrupted"]), said
