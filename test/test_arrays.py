@@ -2,9 +2,10 @@
 import numpy as np
 import pytest
 
-from lidar_obstacles.core.arrays import (all_columns, column_max, column_mean, column_min,
-                                         release_free_memory, reuse_freed_memory, row_norm,
-                                         single_threaded_blas, unique_ints)
+from lidar_obstacles.core.arrays import (all_columns, cell_index, column_max, column_mean,
+                                         column_min, release_free_memory, reuse_freed_memory,
+                                         row_norm, single_threaded_blas, snap_micrometres,
+                                         unique_ints)
 
 
 @pytest.mark.parametrize("shape", [(1, 3), (7, 2), (5000, 3)])
@@ -75,3 +76,21 @@ def test_reuse_freed_memory_is_set_on_glibc():
     if platform.libc_ver()[0] != "glibc":
         pytest.skip("glibc only")
     assert reuse_freed_memory() is True
+
+
+def test_cell_index_puts_a_point_on_an_edge_in_the_same_cell_wherever_the_cloud_lies():
+    # heights 0.793 and 1.043 m (AHN4, 1 mm lattice): 1.043 - 0.793 is 0.2499999999999999
+    # in binary, the same two points moved 2 km up 0.25
+    assert 1.043 - 0.793 < 0.25 <= (1.043 + 2000.0) - (0.793 + 2000.0)
+    for lo, z in ((0.793, 1.043), (2000.793, 2001.043), (0.793, 1.543)):
+        offset = np.array([z - lo])
+        assert cell_index(offset, 0.25)[0] == round((z - lo) / 0.25)
+    assert np.array_equal(cell_index(np.array([-0.3, 0.0, 0.2499, 0.75, 1.7]), 0.25),
+                          [-2, 0, 0, 3, 6])
+    assert cell_index(np.array([0.5]), 1.0).dtype == np.int64
+
+
+def test_snap_micrometres_rounds_in_place():
+    a = np.array([[0.2499999999999773, -1.0000004], [3.0000006, 7.0]])
+    assert snap_micrometres(a) is a
+    assert np.array_equal(a, [[0.25, -1.0], [3.000001, 7.0]])

@@ -6,6 +6,9 @@ import numpy as np
 
 from lidar_obstacles.config import ObstacleDetectorConfig
 from lidar_obstacles.core.ground import classify_ground
+from lidar_obstacles.core.pipeline import ObstacleDetector
+
+from conftest import data_file
 
 CFG = ObstacleDetectorConfig()
 
@@ -40,3 +43,44 @@ def test_the_ground_does_not_depend_on_the_order_of_the_points():
         np.testing.assert_array_equal(again.ground, first.ground[order])
         np.testing.assert_array_equal(again.height_above_ground,
                                       first.height_above_ground[order])
+
+
+def _quantized(xyz, step=0.01):
+    """Coordinates on a LAS file's 1 cm lattice, as read back from it."""
+    return np.round(xyz / step) * step
+
+
+def test_the_ground_does_not_depend_on_where_the_cloud_lies():
+    # Survey coordinates lie on a 1 cm lattice, so points sit exactly at the filter's
+    # thresholds and on its cells' edges, and which side they fell on was decided by the
+    # binary rounding of the coordinates, which moving the cloud up 2 km or into another
+    # binade of UTM changed. (The raster is counted from the cloud's lowest point: a
+    # shift by a fraction of a metre moves it with the cloud.)
+    xyz = _quantized(_scene(1))
+    first = _ground(xyz)
+    for shift in ([0.0, 0.0, 2000.0], [300000.0, 3000000.0, 1000.0], [-7000.0, 0.0, 0.0]):
+        again = _ground(xyz + shift)
+        np.testing.assert_array_equal(again.ground, first.ground)
+        np.testing.assert_array_equal(again.height_above_ground, first.height_above_ground)
+    # by a fraction of a metre: the same labels, the heights to the rounding of the
+    # bilinear weights
+    again = _ground(xyz + [0.37, 0.61, 0.0])
+    np.testing.assert_array_equal(again.ground, first.ground)
+    np.testing.assert_allclose(again.height_above_ground, first.height_above_ground, atol=1e-6)
+
+
+def _classes(xyz):
+    return ObstacleDetector(CFG).process(xyz).classes
+
+
+def test_a_real_survey_moved_keeps_its_classes():
+    # ISPRS samp12 (UTM, 1 cm lattice) moved 2 km up: 60 points changed class before, 46
+    # of them their ground label; moved by a fraction of a metre, none (the raster counts
+    # from the lowest point), but 7 once the centred coordinates were rounded and a cell's
+    # edge was judged without cell_index's slack
+    from lidar_obstacles.io.las import read_las
+
+    xyz = read_las(data_file("isprs/samp12-utm.laz")).xyz
+    first = _classes(xyz)
+    np.testing.assert_array_equal(_classes(xyz + [0.0, 0.0, 2000.0]), first)
+    np.testing.assert_array_equal(_classes(xyz + [0.37, 0.61, 0.0]), first)

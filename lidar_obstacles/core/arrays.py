@@ -62,6 +62,34 @@ def row_norm(a: np.ndarray) -> np.ndarray:
     return np.sqrt(total)
 
 
+# How far below a cell's edge (in cells) a coordinate still counts as on it: cell_index.
+CELL_SLACK = 1e-6
+
+
+def cell_index(offset: np.ndarray, edge: float) -> np.ndarray:
+    """int64 cell indices of offsets (any shape, metres from the grid's corner) in cells of
+    `edge` m: floor(offset / edge), an offset within CELL_SLACK cells below an edge counted
+    on it.
+
+    Why: survey coordinates lie on a lattice (LAS: 1 cm or 1 mm steps), so many points
+    lie exactly on the edges of cells counted from a lattice point (the cloud's lowest
+    point, a whole metre): heights in cm on 0.25 m voxels, one in 25. Which side of the
+    edge such a point fell on was decided by the binary rounding of its coordinates,
+    ~1e-13 to 1e-9 m, and that rounding changes when the cloud is moved (AHN4 moved
+    2 000 m up: 28 of its obstacle points changed voxel, and 603 their class). The slack,
+    0.25 um on 0.25 m voxels, is far above that rounding and far below any scan's
+    resolution."""
+    return np.floor(offset / edge + CELL_SLACK).astype(np.int64)
+
+
+def snap_micrometres(a: np.ndarray) -> np.ndarray:
+    """a (any shape, metres) rounded to the micrometre, in place; returns a."""
+    a *= 1e6
+    np.round(a, out=a)
+    a /= 1e6
+    return a
+
+
 TABLE_MAX = 1 << 22  # cells of unique_ints' counting table (64 MB)
 
 

@@ -75,7 +75,8 @@ import numpy as np
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from lidar_obstacles.config import GroundConfig, RansacConfig, TilingConfig, TinConfig
-from lidar_obstacles.core.arrays import all_columns, column_max, column_min, points_xyz
+from lidar_obstacles.core.arrays import (all_columns, cell_index, column_max, column_min,
+                                         points_xyz, snap_micrometres)
 from lidar_obstacles.core.ransac import ransac_plane
 from lidar_obstacles.errors import CloudFormatError
 
@@ -1157,7 +1158,8 @@ def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
     n = len(pts)
     check_extent(allp, c)
     origin = np.array([allp[:, 0].min(), allp[:, 1].min()])  # (axis-0 reductions are slow)
-    col, row = (np.floor((allp[:, a] - origin[a]) / c).astype(np.int64) for a in (0, 1))
+    # (a point on a cell's edge: see cell_index)
+    col, row = (cell_index(allp[:, a] - origin[a], c) for a in (0, 1))
     shape = (int(row.max()) + 1, int(col.max()) + 1)  # rows = y, cols = x
     flat = row * shape[1] + col
     z = np.ascontiguousarray(allp[:, 2])
@@ -1528,9 +1530,17 @@ def classify_ground(xyz: np.ndarray, *, tiling: TilingConfig, ground: GroundConf
     # point): that moved with the order of the points, and with it the float32 rounding of
     # the in-painted surface, so a shuffled cloud came out different (ISPRS samp23: one
     # point's ground label; ~4e-6 m of height above ground).
-    origin = np.floor((lo + hi) / 2.0)
-    pts = xyz - origin
-    fixed = None if context_xyz is None or len(context_xyz) == 0 else context_xyz - origin
+    # The centred coordinates are rounded to the micrometre: survey points lie on a 1 cm
+    # lattice, so many sit exactly at a threshold of the filter (2 m below their
+    # neighbours, 0.15 m above the ground around them), and the binary rounding of their
+    # coordinates decided the side, differently once the cloud was moved by whole metres
+    # (the 15 ISPRS samples moved 2 km up: 85 ground labels changed, 46 of them samp12's;
+    # corridor 07CZ2_14: 20). Rounded, the filter sees the same numbers wherever whole
+    # metres put the cloud.
+    origin = cell_index((lo + hi) / 2.0, 1.0).astype(np.float64)
+    pts = snap_micrometres(xyz - origin)
+    fixed = (None if context_xyz is None or len(context_xyz) == 0
+             else snap_micrometres(context_xyz - origin))
     tiles, splits = 1, 0
     method = ground.method
     if _collinear_xy(pts):
