@@ -84,3 +84,33 @@ def test_a_real_survey_moved_keeps_its_classes():
     first = _classes(xyz)
     np.testing.assert_array_equal(_classes(xyz + [0.0, 0.0, 2000.0]), first)
     np.testing.assert_array_equal(_classes(xyz + [0.37, 0.61, 0.0]), first)
+
+
+def test_the_obstacles_voxels_do_not_depend_on_where_the_cloud_lies():
+    # Heights on a 1 mm lattice sit on the 0.25 m voxels' edges (counted from the lowest
+    # point) one time in 250 in each axis; 1.043 - 0.793 is 0.2499999999999999 in binary,
+    # the same heights moved 2 km up 0.25, so such points changed voxel, and their
+    # neighbours' shapes with them.
+    from lidar_obstacles.core.obstacles import local_shape, voxel_components
+
+    rng = np.random.default_rng(3)
+    n = 20000
+    xyz = np.column_stack([rng.uniform(0, 40, n), rng.uniform(0, 40, n),
+                           0.793 + rng.uniform(0, 12, n)])
+    xyz = _quantized(xyz, 0.001) + [121000.0, 486000.0, 0.0]  # RD metres (AHN)
+    first = local_shape(xyz, 2.0)
+    labels = voxel_components(xyz, 1.5)
+    for shift in ([0.0, 0.0, 2000.0], [500000.0, 5700000.0, 1000.0]):
+        again = local_shape(xyz + shift, 2.0)
+        for name in ("linearity", "planarity", "roughness", "axis"):
+            np.testing.assert_allclose(getattr(again, name), getattr(first, name),
+                                       atol=1e-6, err_msg=name)
+        np.testing.assert_array_equal(voxel_components(xyz + shift, 1.5), labels)
+
+
+def test_a_dense_real_survey_moved_2_km_up_keeps_its_classes():
+    # AHN4 (1 mm lattice) moved 2 km up: 603 points of a crown became building before
+    from lidar_obstacles.io.las import read_las
+
+    xyz = read_las(data_file("ahn4/ahn_2496_9727.laz")).xyz
+    np.testing.assert_array_equal(_classes(xyz + [0.0, 0.0, 2000.0]), _classes(xyz))

@@ -41,8 +41,8 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from lidar_obstacles.config import ClearanceConfig, ObstaclesConfig
-from lidar_obstacles.core.arrays import (all_columns, column_max, column_mean, column_min,
-                                         row_norm, unique_ints)
+from lidar_obstacles.core.arrays import (all_columns, cell_index, column_max, column_mean,
+                                         column_min, row_norm, unique_ints)
 from lidar_obstacles.core.classes import (
     BUILDING,
     GROUND,
@@ -424,7 +424,7 @@ def _voxel_grid(
         xyz: np.ndarray, lo: np.ndarray, edge: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Centroids (V, 3) of the occupied voxels of edge `edge` m counted from `lo`, the
     voxel (M,) of each point and the integer index (V, 3) of each voxel."""
-    ints = np.floor((xyz - lo) / edge).astype(np.int64)
+    ints = cell_index(xyz - lo, edge)  # (a point on a voxel's edge: see cell_index)
     voxel, count, index = _voxel_ids(ints)
     return (np.stack([np.bincount(voxel, xyz[:, a]) for a in range(3)], axis=1)
             / count[:, None], voxel, index)
@@ -446,7 +446,7 @@ def voxel_components(xyz: np.ndarray, size: float) -> np.ndarray:
     m = len(xyz)
     if m == 0:
         return np.zeros(0, np.int64)
-    ijk = np.floor((xyz - column_min(xyz)) / size).astype(np.int64) + 1
+    ijk = cell_index(xyz - column_min(xyz), size) + 1
     dims = column_max(ijk) + 2
     if int(dims[0]) * int(dims[1]) * int(dims[2]) <= DENSE_GRID_CELLS:
         grid = np.zeros(tuple(int(d) for d in dims), bool)
