@@ -114,3 +114,26 @@ def test_a_dense_real_survey_moved_2_km_up_keeps_its_classes():
 
     xyz = read_las(data_file("ahn4/ahn_2496_9727.laz")).xyz
     np.testing.assert_array_equal(_classes(xyz + [0.0, 0.0, 2000.0]), _classes(xyz))
+
+
+def test_a_cloud_moved_into_a_utm_odometry_frame_keeps_its_positions():
+    # A sensor-frame cloud with FLOAT32 x y z moved by a UTM pose was written back into
+    # its FLOAT32 fields: its outputs' positions, and the points `evaluate` classified,
+    # were 0.1-0.2 m off in y (northing 5.7e6 m: 0.5 m steps).
+    from lidar_obstacles.evaluate import _from_points
+    from lidar_obstacles.ros import messages
+    from lidar_obstacles.ros.stages import Pose, prepare
+
+    pts = np.zeros(3, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                             ("intensity", "<f4"), ("classification", "u1")])
+    pts["x"], pts["y"], pts["z"] = [0.1, 1.23, -3.37], [0.2, 2.0, 5.55], [-40.0, -38.2, -41.07]
+    pts["classification"] = [2, 5, 6]
+    msg = messages.cloud(pts, messages.header(10**9, "lidar"))
+    pose = Pose(10**9, np.array([512345.678, 5712345.678, 345.6]),
+                np.array([0.0, 0.0, 0.3826834, 0.9238795]), "utm")
+    prep = prepare(msg, keep_non_finite=False, max_points=100, pose=pose, transform=True)
+    expected = (np.column_stack([pts["x"], pts["y"], pts["z"]]).astype(np.float64)
+                @ pose.rotation().T + pose.position)
+    np.testing.assert_array_equal(prep.xyz, expected)
+    np.testing.assert_array_equal(_from_points(prep.points, 1.0).xyz, expected)
+    assert prep.points["classification"].tolist() == [2, 5, 6] and prep.frame_id == "utm"

@@ -33,6 +33,7 @@ from lidar_obstacles.io.pointcloud2 import (
     read_points,
     select_points,
     to_native,
+    with_xyz,
     xyz_of,
 )
 
@@ -354,6 +355,26 @@ def test_append_fields_details():
         append_fields(points, {"class": np.zeros(4, np.uint8)})
     with pytest.raises(CloudFormatError, match="bool"):
         append_fields(points, {"flag": np.zeros(3, bool)})
+
+
+@pytest.mark.parametrize("order", ["<", ">"])
+@pytest.mark.parametrize("coord", ["f4", "f8"])
+def test_with_xyz_carries_utm_coordinates_and_keeps_the_other_fields(order, coord):
+    pts = np.zeros(4, dtype=[("intensity", order + "u2"), ("x", order + coord),
+                             ("y", order + coord), ("z", order + coord),
+                             ("classification", "u1"), ("gps_time", order + "f8")])
+    pts["intensity"], pts["classification"] = [1, 2, 3, 65535], [2, 5, 6, 14]
+    pts["gps_time"] = [1.5, 2.5, 3.5, 4.5]
+    xyz = np.array([[512345.678, 5712345.678, 345.61]] * 4) + np.arange(4)[:, None] * 0.01
+    out = with_xyz(pts, xyz)
+    assert out.dtype.names == pts.dtype.names
+    assert np.array_equal(xyz_of(out), xyz)  # FLOAT32 held the northing to 0.5 m
+    for name in ("x", "y", "z"):
+        assert out.dtype[name] == np.dtype(order + "f8")
+    for name in ("intensity", "classification", "gps_time"):
+        assert out[name].tobytes() == pts[name].tobytes()
+    assert fields_from_dtype(out.dtype)  # publishable
+    assert np.array_equal(xyz_of(pts), np.zeros((4, 3)))  # the input untouched
 
 
 def test_select_points_keeps_every_byte():

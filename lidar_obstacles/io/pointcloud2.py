@@ -375,6 +375,31 @@ def xyz_of(points: np.ndarray) -> np.ndarray:
     return out
 
 
+def with_xyz(points: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    """A copy of 1-D structured ``points`` (N,) whose ``x y z`` are ``xyz`` (N, 3) metres,
+    as FLOAT64 fields in the cloud's byte order; every other field keeps its name, order
+    (by offset), datatype and exact bytes, packed without padding when x, y, z widen.
+
+    Why: FLOAT32 holds a coordinate of a survey's frame only coarsely (a UTM northing,
+    ~5.7e6 m, to 0.5 m; an easting, ~5e5 m, to 3 cm), so a sensor-frame cloud moved into
+    such a frame and written back into its FLOAT32 fields lost that much (its outputs'
+    positions, and the points `evaluate` classified)."""
+    _check_xyz(points.dtype)
+    names = sorted(points.dtype.names, key=lambda n: _field(points.dtype, n)[1])
+    f8 = np.dtype("f8").newbyteorder(_byte_order(points.dtype) or _NATIVE)
+    if all(_field(points.dtype, n)[0] == f8 for n in _XYZ):
+        out = points.copy()
+    else:
+        formats = [f8 if n in _XYZ else _field(points.dtype, n)[0] for n in names]
+        out = np.empty(points.shape, dtype=np.dtype({"names": names, "formats": formats}))
+        for name in names:
+            if name not in _XYZ:
+                out[name] = points[name]
+    for i, axis in enumerate(_XYZ):
+        out[axis] = xyz[..., i]
+    return out
+
+
 def to_native(points: np.ndarray) -> np.ndarray:
     """``points`` with every field in native byte order.
 

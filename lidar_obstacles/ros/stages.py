@@ -18,7 +18,8 @@ from lidar_obstacles.core.arrays import all_columns
 from lidar_obstacles.core.pipeline import (DemPipeline, GroundStep, ObstacleDetector,
                                            ObstacleResult)
 from lidar_obstacles.errors import CloudFormatError
-from lidar_obstacles.io.pointcloud2 import append_fields, read_points, select_points, xyz_of
+from lidar_obstacles.io.pointcloud2 import (append_fields, read_points, select_points,
+                                            with_xyz, xyz_of)
 from lidar_obstacles.ros import messages
 
 if TYPE_CHECKING:
@@ -85,7 +86,9 @@ def prepare(msg, *, keep_non_finite: bool, max_points: int, pose: Pose | None,
     cloud already in that frame, the odometry's `header.frame_id`, passes unchanged).
 
     Raises CloudFormatError for malformed or oversize clouds. Non-finite points are dropped
-    unless `keep_non_finite`; kept ones stay in the output but are never ground.
+    unless `keep_non_finite`; kept ones stay in the output but are never ground. A moved
+    cloud's points carry x, y, z as FLOAT64 (`with_xyz`: FLOAT32 holds a UTM northing only
+    to 0.5 m).
     """
     n_in = int(msg.width) * int(msg.height)
     if n_in > max_points:
@@ -96,9 +99,7 @@ def prepare(msg, *, keep_non_finite: bool, max_points: int, pose: Pose | None,
     frame = msg.header.frame_id
     if transform and pose is not None and frame != pose.frame_id:
         xyz = xyz @ pose.rotation().T + pose.position
-        points = points.copy()
-        for i, axis in enumerate("xyz"):
-            points[axis] = xyz[:, i]
+        points = with_xyz(points, xyz)
         frame = pose.frame_id
     return Prepared(points, xyz, messages.stamp_ns_of(msg.header), frame)
 
