@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 
 from lidar_obstacles.core.arrays import (all_columns, cell_index, column_max, column_mean,
-                                         column_min, release_free_memory, reuse_freed_memory,
-                                         row_norm, single_threaded_blas, snap_micrometres,
-                                         unique_ints)
+                                         column_min, distinct_points, release_free_memory,
+                                         reuse_freed_memory, row_norm, single_threaded_blas,
+                                         snap_micrometres, unique_ints)
 
 
 @pytest.mark.parametrize("shape", [(1, 3), (7, 2), (5000, 3)])
@@ -94,3 +94,22 @@ def test_snap_micrometres_rounds_in_place():
     a = np.array([[0.2499999999999773, -1.0000004], [3.0000006, 7.0]])
     assert snap_micrometres(a) is a
     assert np.array_equal(a, [[0.25, -1.0], [3.000001, 7.0]])
+
+
+@pytest.mark.parametrize("repeats", [0, 1, 3])
+def test_distinct_points_are_numpys_unique_rows_in_order_of_first_occurrence(repeats):
+    rng = np.random.default_rng(repeats)
+    xyz = np.round(rng.uniform(0, 50, (20000, 3)), 2)
+    if repeats:
+        xyz = np.concatenate([xyz] + [xyz[rng.random(len(xyz)) < 0.2]] * repeats)
+        xyz = xyz[rng.permutation(len(xyz))]
+    found = distinct_points(xyz)
+    if repeats == 0:
+        assert found is None
+        return
+    first, inverse = found
+    _, expected_first = np.unique(xyz, axis=0, return_index=True)
+    assert np.array_equal(first, np.sort(expected_first))
+    assert np.array_equal(xyz[first][inverse], xyz)
+    assert distinct_points(np.array([[0.0, -0.0, 1.0], [0.0, 0.0, 1.0]]))[0].tolist() == [0]
+    assert distinct_points(np.zeros((1, 3))) is None

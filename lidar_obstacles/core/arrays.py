@@ -90,6 +90,56 @@ def snap_micrometres(a: np.ndarray) -> np.ndarray:
     return a
 
 
+def distinct_points(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The distinct points of xyz (N, 3) float64: (first (U,) the index of each one's first
+    occurrence, ascending, and inverse (N,) which of them each point is), or None when no
+    two points are equal (the usual case).
+
+    By a hash of the coordinates' bits, not a lexicographic sort of all points (np.lexsort
+    of three columns: ~11 ms for 50 000 points): only the points whose hash shares a bucket
+    of a table of >= 4 N with another's are sorted, by the whole hash (~0.7 ms in all).
+    Equal hashes of unequal points (a collision, ~N^2 / 2^64) are sorted by their
+    coordinates instead."""
+    n = len(xyz)
+    if n < 2:
+        return None
+    bits = np.ascontiguousarray(xyz + 0.0).view(np.uint64)  # (+ 0.0: -0.0 is 0.0)
+    key = bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)
+    key ^= bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F)
+    key ^= bits[:, 2] * np.uint64(0x165667B19E3779F9)
+    width = int(n).bit_length() + 2  # a table of 2^width >= 4 N buckets: ~1 / 6 of the
+    # points of an ordinary cloud share one with another
+    bucket = (key >> np.uint64(64 - width)).astype(np.intp)
+    cand = np.flatnonzero(np.bincount(bucket, minlength=1 << width)[bucket] > 1)
+    if len(cand) == 0:
+        return None
+    ckey = key[cand]
+    order = np.argsort(ckey, kind="stable")  # (stable: the first occurrence leads)
+    same = ckey[order[1:]] == ckey[order[:-1]]
+    if not same.any():
+        return None
+    pts = xyz[cand[order]]
+    equal = all_columns(pts[1:] == pts[:-1])
+    if (same & ~equal).any():  # a collision: sort by the coordinates themselves
+        c = xyz[cand]
+        order = np.lexsort((c[:, 2], c[:, 1], c[:, 0]))  # (stable too)
+        pts = c[order]
+        equal = all_columns(pts[1:] == pts[:-1])
+    else:
+        equal &= same
+    if not equal.any():
+        return None
+    sorted_idx = cand[order]
+    lead = np.concatenate([[0], np.flatnonzero(~equal) + 1])  # each group's first position
+    group = np.cumsum(np.concatenate([[False], ~equal]))  # (C,) group of each sorted point
+    rep = np.arange(n)
+    rep[sorted_idx] = sorted_idx[lead][group]
+    first = np.flatnonzero(rep == np.arange(n))
+    position = np.empty(n, np.int64)
+    position[first] = np.arange(len(first))
+    return first, position[rep]
+
+
 TABLE_MAX = 1 << 22  # cells of unique_ints' counting table (64 MB)
 
 

@@ -131,6 +131,14 @@ class ObstacleClasses:
         return ObstacleClasses(classes, object_id, part.objects, part.timings, part.towers,
                                part.wires, part.buildings, part.candidates)
 
+    @staticmethod
+    def repeat(part: "ObstacleClasses", inverse: np.ndarray) -> "ObstacleClasses":
+        """The classes of a cloud of N points whose point i is point inverse[i] ((N,) int)
+        of `part`'s (each copy of a point gets its class and object)."""
+        return ObstacleClasses(part.classes[inverse], part.object_id[inverse], part.objects,
+                               part.timings, part.towers, part.wires, part.buildings,
+                               part.candidates)
+
 
 def search_tree(points: np.ndarray) -> cKDTree:
     """A k-d tree of (M, D) points for exact neighbour queries, built the fast way: split at

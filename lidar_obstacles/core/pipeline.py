@@ -104,6 +104,10 @@ class GroundStep:
     vehicle_xyz: np.ndarray | None
     timings: dict[str, float]
     far: np.ndarray | None = None  # (N,) bool: stray points far from the cloud (noise)
+    # The distinct points among those not far (None: all distinct): (U,) index of each
+    # one's first occurrence and (M,) which of them each point is (:func:`distinct_points`).
+    first: np.ndarray | None = None
+    inverse: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -154,13 +158,20 @@ class StreamingGround:
         self.cfg = cfg
 
     def classify(self, xyz: np.ndarray, stamp: float
-                 ) -> tuple[GroundResult, dict[str, float], np.ndarray | None]:
+                 ) -> tuple[GroundResult, dict[str, float], np.ndarray | None,
+                            tuple[np.ndarray, np.ndarray] | None]:
         """Ground of one cloud xyz (N >= 1, 3) float64 m, filtered with the context around
         it, which this cloud's ground then joins (stamp: seconds). Returns the result, the
-        seconds spent reading the context, filtering and updating the context, and the
-        stray points far from the cloud in XY or z (:func:`far_points`; None when there
-        are none): never ground, no height, and left out of the filter's raster, which one
-        point kilometres away would have made gigabytes, and of the obstacles' shapes."""
+        seconds spent reading the context, filtering and updating the context, the stray
+        points far from the cloud in XY or z (:func:`far_points`; None when there are
+        none): never ground, no height, and left out of the filter's raster, which one
+        point kilometres away would have made gigabytes, and of the obstacles' shapes;
+        and the distinct points among the others (:func:`distinct_points`; None when all
+        are): a point given twice (merged tiles, a driver's repeat) is filtered once and
+        both copies get its answer, as the obstacles do (`obstacle_step`). Counted twice,
+        it had a neighbour at 0 m (never isolated noise), doubled the ground density
+        the band narrows with, and made a single ground point per cell two."""
+        from lidar_obstacles.core.arrays import distinct_points
         from lidar_obstacles.core.ground import GroundResult, classify_ground, far_points
 
         cfg = self.cfg
@@ -171,6 +182,10 @@ class StreamingGround:
         else:
             far = None
         t0 = time.perf_counter()
+        distinct = distinct_points(xyz)
+        near = xyz
+        if distinct is not None:
+            xyz = xyz[distinct[0]]
         lo, hi = column_min(xyz[:, :2]), column_max(xyz[:, :2])
         context_xyz = self.context.points_near(lo, hi, stamp)
         t1 = time.perf_counter()
@@ -180,12 +195,17 @@ class StreamingGround:
         self.context.update(xyz[g.ground], stamp, xyz[:, :2])
         timings = {"context": t1 - t0, "ground": t2 - t1,
                    "context_update": time.perf_counter() - t2}
+        if distinct is not None:
+            inverse = distinct[1]
+            g = GroundResult(g.ground[inverse], g.height_above_ground[inverse], g.tiles,
+                             g.splits, g.timings)
+            xyz = near
         if far is not None:
             ground = np.zeros(len(full), bool)
             hag = np.full(len(full), np.nan, np.float32)
             ground[~far], hag[~far] = g.ground, g.height_above_ground
             g = GroundResult(ground, hag, g.tiles, g.splits, g.timings)
-        return g, timings, far
+        return g, timings, far, distinct
 
 
 class ObstacleDetector:
@@ -231,9 +251,10 @@ class ObstacleDetector:
         if len(xyz) == 0:
             return GroundStep(xyz, np.zeros(0, bool), np.zeros(0, np.float32), stamp,
                               vehicle_xyz, {"total": 0.0})
-        g, timings, far = self.ground.classify(xyz, stamp)
+        g, timings, far, distinct = self.ground.classify(xyz, stamp)
+        first, inverse = distinct if distinct is not None else (None, None)
         return GroundStep(xyz, g.ground, g.height_above_ground, stamp, vehicle_xyz, timings,
-                          far)
+                          far, first, inverse)
 
     def obstacle_step(self, step: GroundStep) -> ObstacleResult:
         """The second half of `process`: obstacle classes, objects and the clearance grid
@@ -248,7 +269,11 @@ class ObstacleDetector:
             empty = np.zeros(0, bool)
             return ObstacleResult(empty, np.zeros(0, np.uint8), np.zeros(0, np.float32),
                                   np.zeros(0, np.int32), (), None, {"total": 0.0})
-        near = slice(None) if step.far is None else ~step.far
+        near: slice | np.ndarray = slice(None)
+        if step.far is not None or step.first is not None:
+            near = np.arange(len(xyz)) if step.far is None else np.flatnonzero(~step.far)
+            if step.first is not None:  # each distinct point once (StreamingGround.classify)
+                near = near[step.first]
         lo, hi = column_min(xyz[near, :2]), column_max(xyz[near, :2])
         recent = [c for stamp, c in self.candidates
                   if step.stamp - SHAPE_CONTEXT_SECONDS <= stamp < step.stamp]
@@ -259,6 +284,8 @@ class ObstacleDetector:
                                 known_wires=self.wires.near(lo, hi, step.stamp),
                                 known_buildings=self.buildings.near(lo, hi, step.stamp),
                                 context=context)
+        if step.inverse is not None:  # the copies of a point get its answer
+            ob = ObstacleClasses.repeat(ob, step.inverse)
         if step.far is not None:  # the stray points are noise, in no object
             ob = ObstacleClasses.expand(ob, ~step.far, NOISE)
         self.towers.add(ob.towers, step.stamp)
@@ -277,7 +304,12 @@ class ObstacleDetector:
         timings = {**step.timings, "obstacles": t4 - t3, "clearance": t5 - t4}
         edges = None
         if cfg.features.enabled:
-            edges = self._obstacle_edges(xyz, ob.classes)
+            if step.inverse is None:
+                edges = self._obstacle_edges(xyz, ob.classes)
+            else:  # found on the distinct points (the stray ones are noise: never edges)
+                edges = np.zeros(len(xyz), bool)
+                once = self._obstacle_edges(xyz[near], ob.classes[near])
+                edges[slice(None) if step.far is None else ~step.far] = once[step.inverse]
             timings["features"] = time.perf_counter() - t5
         timings["total"] = sum(timings.values())
         return ObstacleResult(
@@ -409,7 +441,7 @@ class DemPipeline:
         if self.cfg.dem.ground_source == "detector":
             if self._ground is None:
                 self._ground = StreamingGround(self.cfg)
-            g, _, _ = self._ground.classify(xyz, stamp)
+            g, _, _, _ = self._ground.classify(xyz, stamp)
             return bare_earth_of(xyz, g.ground, g.height_above_ground, self.cfg.dem)
         from lidar_obstacles.core.ground import check_extent, far_points
         from lidar_obstacles.core.kmeans import kmeans_ground
