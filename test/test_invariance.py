@@ -3,6 +3,7 @@ the cloud moved by whole metres (survey coordinates), every point twice."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from lidar_obstacles.config import ObstacleDetectorConfig
 from lidar_obstacles.core.ground import classify_ground
@@ -43,6 +44,28 @@ def test_the_ground_does_not_depend_on_the_order_of_the_points():
         np.testing.assert_array_equal(again.ground, first.ground[order])
         np.testing.assert_array_equal(again.height_above_ground,
                                       first.height_above_ground[order])
+
+
+@pytest.mark.parametrize("method", ["tin", "ransac"])
+def test_the_other_ground_methods_do_not_depend_on_the_order_of_the_points(method):
+    # RANSAC drew its samples by index; the TIN's seeds, facets and Qhull's triangulation
+    # of a lattice's cocircular points followed the input's order.
+    from lidar_obstacles.config import replace
+
+    cfg = replace(CFG, {"ground.method": method})
+    xyz = _quantized(_scene(4, n=3000, size=50.0))
+    context = _quantized(_scene(5, n=1000, size=50.0)) + [25.0, 0.0, 0.0]
+
+    def run(points, ctx):
+        return classify_ground(points, tiling=cfg.tiling, ground=cfg.ground, tin=cfg.tin,
+                               ransac=cfg.ransac, context_xyz=ctx,
+                               rng=np.random.default_rng(0))
+
+    first = run(xyz, context)
+    order = np.random.default_rng(1).permutation(len(xyz))
+    again = run(xyz[order], context[::-1])
+    np.testing.assert_array_equal(again.ground, first.ground[order])
+    np.testing.assert_array_equal(again.height_above_ground, first.height_above_ground[order])
 
 
 def _quantized(xyz, step=0.01):

@@ -1551,6 +1551,15 @@ def classify_ground(xyz: np.ndarray, *, tiling: TilingConfig, ground: GroundConf
                                                    threshold=ground.threshold), fixed=fixed)
         t1 = time.perf_counter()
     else:
+        # In the order of their coordinates, the context's too: RANSAC draws its samples by
+        # index, Qhull's triangulation of cocircular points (a survey's lattice has many)
+        # and the ties of the lowest point per cell and of one point per facet follow the
+        # input's order, so a shuffled cloud changed 14-745 labels of an ISPRS sample with
+        # `tin` and 550-2 700 with `ransac`. The sort is ~1 % of either method's time.
+        order = np.lexsort((pts[:, 2], pts[:, 1], pts[:, 0]))
+        pts = pts[order]
+        if fixed is not None:
+            fixed = fixed[np.lexsort((fixed[:, 2], fixed[:, 1], fixed[:, 0]))]
         if method == "ransac":
             is_ground, tiles, splits = _ransac_tiles(pts, tiling, ransac, rng, fixed)
         else:
@@ -1558,6 +1567,9 @@ def classify_ground(xyz: np.ndarray, *, tiling: TilingConfig, ground: GroundConf
         t1 = time.perf_counter()
         g_pts = pts[is_ground] if fixed is None else np.concatenate([fixed, pts[is_ground]])
         z_ground = GroundSurface(g_pts).height(pts[:, :2])
+        back = np.empty_like(order)
+        back[order] = np.arange(n)
+        is_ground, z_ground, pts = is_ground[back], z_ground[back], pts[back]
     hag = (pts[:, 2] - z_ground).astype(np.float32)
     t2 = time.perf_counter()
     return GroundResult(is_ground, hag, tiles, splits,
