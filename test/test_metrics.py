@@ -165,3 +165,72 @@ def test_real_isprs_perfect_and_flipped():
     assert r["ground_object"]["total_error"] == pytest.approx(np.ceil(ref.size / 10) / ref.size)
     assert r["blocks"]["n_blocks"] == 36 and r["blocks"]["n_eligible"] > 0
     json.dumps(r, allow_nan=False)
+
+
+def test_type_i_and_type_ii_are_not_interchangeable():
+    # 4 reference ground, 6 reference object; 1 ground rejected (Type I error), 3 objects
+    # accepted as ground (Type II error). Unequal on purpose: with 1 and 1 of 5 and 5 (the
+    # hand test above) a swap of the two figures, or of their denominators, goes unseen.
+    ref = [2, 2, 2, 2, 6, 6, 6, 5, 5, 1]
+    pred = [2, 2, 2, 6, 2, 2, 2, 5, 5, 1]
+    go = M.evaluate_classes(ref, pred)["ground_object"]
+    assert (go["n_ground"], go["n_object"]) == (4, 6)
+    assert go["type_i"] == pytest.approx(1 / 4)
+    assert go["type_ii"] == pytest.approx(3 / 6)
+    assert go["total_error"] == pytest.approx(4 / 10)
+    # rows predicted, columns reference: [[g->g, o->g], [g->o, o->o]]
+    assert go["matrix"] == [[3, 3], [1, 3]]
+    # P_o = 6/10; P_e = (6*4 + 4*6)/100 = .48
+    assert go["kappa"] == pytest.approx((0.6 - 0.48) / (1 - 0.48))
+
+
+def test_blocks_are_numbered_rows_south_to_north_on_a_non_square_extent():
+    # nx = 2 columns over x in [5, 15], ny = 3 rows over y in [10, 50]: the extent is 4x
+    # taller than wide, so a row index scaled by the x span, or blocks numbered column-
+    # major, puts the points in other blocks. Block (column ix, row iy) holds 1 + ix + 2 iy
+    # points, all ground and found, except the north-east one, a 2 x 2 table of 10 points
+    # with unequal marginals (rows predicted, columns reference):
+    #   predicted ground:  5 (ground)  2 (object)
+    #   predicted object:  1           2
+    # P_o = 7/10; P_e = (7*6 + 3*4)/100 = .54; kappa = .16/.46
+    xs, ys = (5.0, 15.0), (10.0, 30.0, 50.0)
+    xy, ref, pred = [], [], []
+    for iy in range(3):
+        for ix in range(2):
+            if (ix, iy) == (1, 2):
+                r = [True] * 6 + [False] * 4
+                p = [True] * 5 + [False] + [True] * 2 + [False] * 2
+            else:
+                r = p = [True] * (1 + ix + 2 * iy)
+            xy += [(xs[ix], ys[iy])] * len(r)
+            ref += r
+            pred += p
+    b = M.block_kappa(np.array(xy), np.array(ref), np.array(pred), blocks="2x3")
+    assert b["extent"] == [5.0, 15.0, 10.0, 50.0]
+    assert b["n_points"] == [[1, 2], [3, 4], [5, 10]]  # row 0 = south
+    assert b["kappa"][:2] == [[None, None], [None, None]]  # all ground: not eligible
+    assert b["kappa"][2][0] is None
+    assert b["kappa"][2][1] == pytest.approx(0.16 / 0.46)
+    assert b["n_eligible"] == 1 and b["mean_kappa"] == pytest.approx(0.16 / 0.46)
+    assert b["share_kappa_gt_0_6"] == 0.0
+
+
+def test_grid_values_at_is_exact_on_a_plane_with_origin_and_resolution():
+    # Bilinear interpolation reproduces a plane exactly, so any weight given to the wrong
+    # corner, or a wrong origin, resolution or half-cell shift, shows. Cell (r, c) has its
+    # centre at (100 + 2 (c + 0.5), 200 + 2 (r + 0.5)).
+    res, origin = 2.0, (100.0, 200.0)
+
+    def plane(x, y):
+        return 3.0 + 0.5 * (x - 100.0) - 0.25 * (y - 200.0)
+
+    cx = origin[0] + (np.arange(4) + 0.5) * res
+    cy = origin[1] + (np.arange(3) + 0.5) * res
+    grid = plane(cx[None, :], cy[:, None])
+    pts = np.array([[101.5, 202.5],   # fc = 0.25, fr = 0.75 in the first cell square
+                    [104.9, 201.2], [106.9, 204.9], [101.0, 201.0]])
+    z = M.grid_values_at(grid, pts, resolution=res, origin=origin)
+    np.testing.assert_allclose(z, plane(pts[:, 0], pts[:, 1]))
+    # outside the hull of the cell centres (x < 101 or y > 205): NaN
+    assert np.isnan(M.grid_values_at(grid, [[100.9, 202.0], [103.0, 205.1]], resolution=res,
+                                     origin=origin)).all()
