@@ -420,6 +420,10 @@ MALFORMED = {
     "field outside point_step": (bad(point_step=13, row_step=39), "'ring'.*outside point_step 13"),
     "count pushes field out": (bad(fields=GOOD[:3] + [("ring", 12, UINT16, 3)]), "outside"),
     "overlap": (bad(fields=GOOD[:3] + [("ring", 10, UINT16, 1)]), "'z'.*'ring'.*overlap"),
+    # z is bytes 8..11: a field from byte 11 shares one byte with it (from 12, as in GOOD,
+    # it only touches it)
+    "overlap by one byte": (bad(fields=GOOD[:3] + [("ring", 11, UINT16, 1)]),
+                            r"'z' \(bytes 8..11\) and 'ring' \(from byte 11\) overlap"),
     "missing z": (bad(fields=GOOD[:2] + GOOD[3:]), "no 'z' field"),
     "unknown datatype 0": (bad(fields=GOOD[:3] + [("ring", 12, 0, 1)]), "unknown datatype 0"),
     "unknown datatype 9": (bad(fields=GOOD[:3] + [("ring", 12, 9, 1)]), "unknown datatype 9"),
