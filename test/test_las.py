@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 
 import laspy
+import numpy as np
 import pytest
 
 from conftest import data_file
@@ -23,7 +24,7 @@ def test_a_truncated_laz_file_is_named_as_such(tmp_path):
         read_las(cut)
 
 
-@pytest.mark.parametrize("records_left", [1000, 1000.5, 0])
+@pytest.mark.parametrize("records_left", [1000, 1000.5, 0, 38009])  # (38009: the last one)
 def test_a_truncated_las_file_is_named_as_such(tmp_path, records_left):
     """Cut inside a record laspy failed with "buffer size must be a multiple of element
     size"; cut between records it read the points left without a word (none: "no points")."""
@@ -88,3 +89,25 @@ def test_the_epsg_code_of_geokeys_is_the_projected_one(tmp_path, keys, epsg):
     words = [1, 1, 0, len(keys)] + [v for k in sorted(keys) for v in (k, 0, 1, keys[k])]
     vlr.parse_record_data(struct.pack(f"<{len(words)}H", *words))
     assert _las_with(tmp_path, vlr).epsg == epsg
+
+
+def test_coordinates_are_metres_by_the_files_scales_and_offsets(tmp_path):
+    """A LAS file stores integers; x = X * scale + offset. Raw integers, or a scale or
+    offset of the wrong axis, are kilometres off. The classification is the class alone,
+    without the flag bits that share its byte in point formats 0-5."""
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.scales = [0.01, 0.02, 0.001]
+    header.offsets = [500000.0, 5400000.0, -10.0]
+    las = laspy.LasData(header)
+    las.X, las.Y, las.Z = [12, 150], [0, 7], [10500, 0]
+    las.classification = [2, 6]
+    las.withheld = [False, True]  # (bit 7 of the same byte)
+    las.intensity = [7, 65535]
+    las.gps_time = [1.5, 2.25]
+    las.write(str(tmp_path / "scaled.las"))
+    cloud = read_las(tmp_path / "scaled.las")
+    np.testing.assert_allclose(cloud.xyz, [[500000.12, 5400000.0, 0.5],
+                                           [500001.5, 5400000.14, -10.0]], rtol=0, atol=1e-9)
+    assert cloud.points["classification"].tolist() == [2, 6]
+    assert cloud.points["intensity"].tolist() == [7, 65535]
+    assert cloud.has_gps_time and cloud.points["gps_time"].tolist() == [1.5, 2.25]
