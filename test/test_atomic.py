@@ -3,6 +3,7 @@ kind, is the user's data. A writer killed outright leaves its temporary output o
 the next write of the same target."""
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -50,6 +51,31 @@ def test_an_empty_file_is_replaced_and_a_folder_never(tmp_path):
     with pytest.raises(OutputError, match="exists and is not a TIFF"):
         check_replaceable(folder, TIFF)
     check_replaceable(tmp_path / "new.tif", TIFF)  # nothing there: fine
+
+
+@pytest.mark.parametrize("fails_in", ["write", "rename"])
+def test_a_failed_write_leaves_the_old_file_and_no_temporary_one(tmp_path, fails_in,
+                                                                 monkeypatch):
+    """The writer raising halfway (a full disk, a bug), or the rename failing: the target
+    keeps its old bytes and the half-written temporary file beside it is removed, in this
+    process too (the next writer tidies only the partials of dead processes)."""
+    path = tmp_path / "dem.tif"
+    path.write_bytes(b"II*\x00old")
+
+    def write(tmp):
+        tmp.write_bytes(b"II*\x00half")
+        if fails_in == "write":
+            raise OSError(28, "No space left on device")
+
+    if fails_in == "rename":
+        def replace(src, dst):
+            raise OSError(18, "Invalid cross-device link")
+
+        monkeypatch.setattr(os, "replace", replace)
+    with pytest.raises(OSError):
+        atomic_write(path, write, kind=TIFF)
+    assert path.read_bytes() == b"II*\x00old"
+    assert [p.name for p in tmp_path.iterdir()] == ["dem.tif"]
 
 
 # The three ways an output is written, each as a statement that writes `out` and calls
