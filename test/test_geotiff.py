@@ -68,6 +68,20 @@ def test_gdal_reads_transform_and_nodata(tmp_path):
         assert ds.index(512003.0, 5403001.0) == (2, 1)
 
 
+@pytest.mark.parametrize("epsg, model, key", [(4326, 2, 2048), (32632, 1, 3072)])
+def test_a_geographic_crs_is_written_as_geographic(tmp_path, epsg, model, key):
+    """GTModelTypeGeoKey (1024) says projected (1) or geographic (2), and the code goes
+    in GeographicTypeGeoKey (2048) or ProjectedCSTypeGeoKey (3072): a WGS 84 DEM labelled
+    projected is read by GDAL as a CRS in metres with degree coordinates."""
+    import tifffile
+
+    path = write_geotiff(tmp_path / "dem.tif", _grid(), crs_epsg=epsg)
+    with tifffile.TiffFile(path) as tif:
+        words = list(tif.pages[0].tags[34735].value)
+    keys = {words[i]: words[i + 3] for i in range(4, len(words), 4)}
+    assert keys == {1024: model, 1025: 1, key: epsg}  # (1025: PixelIsArea)
+
+
 def test_errors_leave_nothing_behind(tmp_path):
     with pytest.raises(ExportError):
         write_geotiff(tmp_path / "missing" / "dem.tif", _grid(), crs_epsg=None)
