@@ -70,6 +70,22 @@ def test_fill_distance_limits_interpolation():
     assert (grid.interpolated[:, near] == 1).all()
 
 
+def test_fill_distance_is_inclusive():
+    """Empty cells within `dem.fill_distance` of a measured cell (centre to centre) are
+    filled, at exactly that distance too; farther ones stay unknown. Measured columns
+    0-2 and 8-10 of 1 m cells, a gap of columns 3-7 (1, 2, 3, 2, 1 cells from the data)."""
+    xs = np.r_[0:3, 8:11] + 0.5
+    xy = np.stack(np.meshgrid(xs, np.arange(3) + 0.5), axis=-1).reshape(-1, 2)
+    pts = np.column_stack([xy, plane_at(xy)])
+    grid = build_dem(pts, cfg=_cfg(**{"dem.resolution": 1.0, "dem.interpolation": "idw",
+                                      "dem.fill_distance": 2.0}))
+    assert np.array_equal(grid.origin, [0.0, 0.0]) and grid.shape == (3, 11)
+    known = np.isfinite(grid.elevation).all(axis=0)
+    assert known.tolist() == [True] * 5 + [False] + [True] * 5
+    filled = [False] * 3 + [True, True, False, True, True] + [False] * 3
+    assert grid.interpolated.all(axis=0).tolist() == filled
+
+
 @pytest.mark.parametrize("method", ["tin", "idw", "kriging", "rbf", "rbfnn"])
 def test_degenerate_ground_gives_reason_not_crash(method):
     cfg = _cfg(**{"dem.interpolation": method})

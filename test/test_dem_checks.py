@@ -67,3 +67,23 @@ def test_changing_the_check_points_at_runtime_starts_a_new_set():
     pipe.reconfigure(replace(pipe.cfg, {"thinning.check_points": 10}))
     pipe.add_ground(_ground(1, 2000))
     assert len(pipe.checks.xyz) == 10 and pipe.checks.capacity == CHECK_MESSAGES * 10
+
+
+def test_check_points_find_their_cell_from_the_grids_own_origin():
+    """Check point (x, y) lies in the cell of column floor((x - origin x) / res) and row
+    floor((y - origin y) / res); the origin's x and y differ here, as a real survey's
+    do (the flights above start near (0, 0), where x and y could be swapped unseen)."""
+    elevation = np.array([[1.0, np.nan, 3.0], [4.0, 5.0, 6.0]], np.float32)
+    grid = DemGrid(elevation, np.zeros((2, 3), np.uint8), np.ones((2, 3), np.uint32),
+                   np.array([100.0, 200.0]), 2.0)
+    checks = CheckPoints(10)
+    checks.add(np.array([[101.0, 201.0, 1.0],    # cell (row 0, col 0) = 1: error 0
+                         [105.5, 203.9, 7.0],    # cell (1, 2) = 6: error 1
+                         [102.5, 200.5, 3.0],    # cell (0, 1) unknown: left out
+                         [99.9, 201.0, 5.0],     # west of the grid
+                         [103.0, 204.0, 0.0]]))  # north of it (row 2 of 2)
+    stats = checks.accuracy(grid)
+    assert stats["check_n"] == 2
+    assert stats["check_rmse_m"] == pytest.approx(np.sqrt(0.5))
+    # reference heights 1 and 7 (mean 4, SS_tot 18), SS_res 1
+    assert stats["check_r2"] == pytest.approx(1 - 1 / 18)

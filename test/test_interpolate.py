@@ -315,3 +315,12 @@ def test_rbfnn_answers_within_the_samples_heights():
     assert out.min() >= 0.0 and out.max() <= 10.0
     inside = (raw >= 0.0) & (raw <= 10.0)
     assert np.array_equal(out[inside], raw[inside])
+
+
+@pytest.mark.parametrize("power, expected", [(1.0, 1.0), (2.0, 0.6), (3.0, 1 / 3)])
+def test_idw_weights_are_one_over_distance_to_the_power(power, expected):
+    # samples 1 m (z = 0) and 2 m (z = 3) from the query: weights 1 and 1 / 2^p, so
+    # z = 3 / 2^p / (1 + 1 / 2^p): p = 1 -> 1.0, p = 2 -> 0.6, p = 3 -> 1/3
+    z = interpolate("idw", np.array([[1.0, 0.0], [0.0, 2.0]]), np.array([0.0, 3.0]),
+                    np.array([[0.0, 0.0]]), idw_neighbours=2, idw_power=power)
+    assert z[0] == pytest.approx(expected)
