@@ -7,8 +7,9 @@ from scipy.spatial import Delaunay
 
 from lidar_obstacles.config import ObstacleDetectorConfig, replace
 from lidar_obstacles.core.context import GroundContext
-from lidar_obstacles.core.ground import (HybridSettings, _dense_band, _ground_density,
-                                         _Inpainter, _median_trend, _Opening, _slope,
+from lidar_obstacles.core.ground import (GroundSurface, HybridSettings, _dense_band,
+                                         _ground_density, _Inpainter, _median_trend, _Opening,
+                                         _slope,
                                          _steep_objects, _window_extreme, classify_ground,
                                          inpaint, morphological_ground, tin_densification)
 from lidar_obstacles.core.ransac import fit_plane_eigen, ransac_plane, required_trials
@@ -112,6 +113,43 @@ def test_low_blunders_are_not_ground():
     res = _run(np.concatenate([ground, pits]))
     assert not res.ground[len(ground):].any()
     assert res.ground[:len(ground)].mean() > 0.97
+
+
+def _hybrid(xyz, **updates):
+    c = replace(ObstacleDetectorConfig(), updates)
+    return classify_ground(xyz, tiling=c.tiling, ground=c.ground, tin=c.tin, ransac=c.ransac)
+
+
+@pytest.mark.parametrize("threshold, raised_are_ground",
+                         [(0.1, False), (0.2, False), (0.5, True), (1.0, True)])
+def test_ground_threshold_is_the_band_above_flat_ground(threshold, raised_are_ground):
+    """`ground.threshold`: on flat ground, points up to this high above the ground surface
+    are ground. Every 1 m cell holds a point at z = 0 and one 0.3 m above it (one per m^2
+    each: a sparse scan, whose band is not narrowed as a dense one's is)."""
+    low = np.array([[x + 0.25, y + 0.25, 0.0] for x in range(30) for y in range(30)])
+    raised = low + [0.5, 0.5, 0.3]
+    res = _hybrid(np.concatenate([low, raised]), **{"ground.threshold": threshold})
+    assert res.ground[:len(low)].all()
+    assert (res.ground[len(low):] == raised_are_ground).all()
+
+
+def test_a_low_blunder_is_not_ground_even_within_a_wide_band():
+    """A point 2.5 m below the ground around it is a low blunder (`low_outlier`, 2 m) and
+    never ground, even when `ground.threshold` (3 m here) would take it into the band."""
+    rng = np.random.default_rng(0)
+    ground = np.column_stack([rng.uniform(0, 30, (900, 2)), rng.normal(0, 0.02, 900)])
+    blunder = np.array([[15.2, 15.3, -2.5]])
+    res = _hybrid(np.concatenate([ground, blunder]), **{"ground.threshold": 3.0})
+    assert not res.ground[-1] and res.ground[:-1].all()
+
+
+def test_ground_surface_is_the_tin_inside_and_the_nearest_ground_outside():
+    # ground z = 1 + 0.1 x + 0.2 y at three points; outside their hull the height above
+    # ground of tin/ransac is taken from the nearest ground point
+    surface = GroundSurface(np.array([[0.0, 0.0, 1.0], [10.0, 0.0, 2.0], [0.0, 10.0, 3.0]]))
+    z = surface.height(np.array([[1.0, 1.0], [4.0, 5.0], [20.0, 0.0], [-5.0, 12.0]]))
+    np.testing.assert_allclose(z, [1.3, 2.4, 2.0, 3.0])
+    assert np.isnan(GroundSurface(np.zeros((0, 3))).height(np.zeros((2, 2)))).all()
 
 
 @pytest.mark.parametrize("method", METHODS)
