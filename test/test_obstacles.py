@@ -84,10 +84,59 @@ def test_vegetation_bands_and_degenerate_inputs():
     assert one.classes[0] == 7  # alone: noise
 
 
+def test_vegetation_classes_by_height_above_ground_and_noise_below_it():
+    """Non-ground points are vegetation by their height above ground, not their z (the
+    ground here lies at z = 100): 3 below 0.5 m, 4 from 0.5 to 2 m inclusive, 5 above;
+    more than 1.5 m below the ground they are noise (7). Each height is a cluster of 3
+    points, too few for an object and not isolated."""
+    heights = [-2.0, -1.0, 0.0, 0.49, 0.5, 1.0, 2.0, 2.01, 2.9]
+    expected = [7, 3, 3, 3, 4, 4, 4, 5, 5]
+    xyz = np.array([[10.0 * i + 0.3 * k, 0.0, 100.0 + h]
+                    for i, h in enumerate(heights) for k in range(3)])
+    hag = np.repeat(np.array(heights, np.float32), 3)
+    res = classify_obstacles(xyz, np.zeros(len(xyz), bool), hag, cfg=CFG.obstacles)
+    assert res.classes.reshape(-1, 3).tolist() == [[c] * 3 for c in expected]
+
+
+def test_wire_max_slope_bounds_how_steep_a_wire_may_be():
+    """A straight cable 30 m long, 15 m above ground with nothing below: a wire (14) when
+    it rises at 10 degrees, not at 20 (the default `wire_max_slope` is 15 degrees), and a
+    wire at 20 degrees once `wire_max_slope` is 25."""
+    from lidar_obstacles.config import replace
+
+    def cable(degrees):
+        s = np.linspace(0.0, 30.0, 300)
+        a = np.radians(degrees)
+        return np.column_stack([s * np.cos(a), np.zeros(300), 15.0 + s * np.sin(a)])
+
+    def classes(xyz, cfg):
+        return classify_obstacles(xyz, np.zeros(len(xyz), bool), xyz[:, 2].astype(np.float32),
+                                  cfg=cfg).classes
+
+    assert (classes(cable(10.0), CFG.obstacles) == 14).all()
+    assert not (classes(cable(20.0), CFG.obstacles) == 14).any()
+    steep = replace(CFG, {"obstacles.wire_max_slope": 25.0}).obstacles
+    assert (classes(cable(20.0), steep) == 14).all()
+
+
+def test_an_objects_clearance_is_its_lowest_point_above_ground():
+    # a block of points 2 x 2 m, from 4 to 6 m above the ground at z = 100, in no contact
+    # with the ground (a crown, a cable car): one object, 6 m high, 4 m of clearance
+    g = np.arange(0.0, 2.01, 0.25)
+    xyz = np.stack(np.meshgrid(g, g, g + 104.0, indexing="ij"), axis=-1).reshape(-1, 3)
+    hag = (xyz[:, 2] - 100.0).astype(np.float32)
+    res = classify_obstacles(xyz, np.zeros(len(xyz), bool), hag, cfg=CFG.obstacles)
+    (obj,) = res.objects
+    assert obj.n_points == len(xyz) and (res.object_id == obj.id).all()
+    assert (obj.height_above_ground, obj.clearance) == (6.0, 4.0)
+    assert obj.min_xyz.tolist() == [0.0, 0.0, 104.0] and obj.max_xyz.tolist() == [2.0, 2.0, 106.0]
+
+
 def test_clearance_grid_by_hand():
-    xyz = np.array([[0.5, 0.5, 0], [1.5, 0.5, 10.0], [1.6, 0.6, 25.0], [2.5, 2.5, 0.0]])
-    classes = np.array([2, 5, 14, 7], np.uint8)
-    hag = np.array([0.0, 10.0, 25.0, 0.0], np.float32)
+    xyz = np.array([[0.5, 0.5, 0], [1.5, 0.5, 10.0], [1.6, 0.6, 25.0], [2.5, 2.5, 0.0],
+                    [3.5, 1.5, 30.0]])
+    classes = np.array([2, 5, 14, 7, 7], np.uint8)
+    hag = np.array([0.0, 10.0, 25.0, 0.0, 30.0], np.float32)
     from lidar_obstacles.config import replace
 
     cfg = replace(ObstacleDetectorConfig(), {"clearance.size": 5.0, "clearance.resolution": 1.0,
@@ -98,6 +147,7 @@ def test_clearance_grid_by_hand():
     assert cells[0, 0] == 0  # ground only
     assert cells[0, 1] == 50  # the wire, 25 m of 50 -> 50 (the tree below it is lower)
     assert cells[2, 2] == 0  # noise is seen but is no obstacle
+    assert cells[1, 3] == 0  # ... however high above ground (a bird, a multipath echo)
     assert cells[4, 4] == -1  # nothing fell there
 
 
@@ -287,6 +337,41 @@ def test_a_tall_tree_under_a_span_is_no_tower_but_the_towers_are():
     assert (c[truth == 15] == 15).mean() > 0.8
     assert (c[truth == 5] == 15).mean() < 0.01  # the tree under the span
     assert len(res.towers) == 2
+
+
+def test_a_tall_tree_under_a_wire_passing_over_it_is_no_tower_in_a_short_strip():
+    """An 18 m tree under a line of two wires, the lower one 1 m over its crown, the upper
+    one 7 m over it; the strip is 24 m long, so no wire is seen beyond SAG_NEAR (15 m) to
+    show how the wires sag, and the wire it touches decides alone: the wire higher over
+    its top says it carries none (a tower carries the highest wire)."""
+    rng = np.random.default_rng(0)
+    ground = np.column_stack([rng.uniform(-12, 12, 3000), rng.uniform(-6, 6, 3000),
+                              np.zeros(3000)])
+    trunk = np.column_stack([rng.normal(0, 0.1, (300, 2)), rng.uniform(0, 12, 300)])
+    crown = rng.normal(0, 1.0, (1500, 3)) * [1.5, 1.5, 2.0] + [0, 0, 15.5]
+    tree = np.concatenate([trunk, crown[crown[:, 2] < 18.0]])
+    s = np.arange(-12, 12, 0.1)
+    wires = np.concatenate([np.column_stack([s, np.zeros_like(s), np.full_like(s, 19.0)]),
+                            np.column_stack([s, np.full_like(s, 0.5), np.full_like(s, 25.0)])])
+    xyz = np.concatenate([ground, tree, wires])
+    is_ground = np.arange(len(xyz)) < len(ground)
+    c = classify_obstacles(xyz, is_ground, xyz[:, 2].astype(np.float32),
+                           cfg=CFG.obstacles).classes
+    assert not (c == 15).any()
+    assert (c[len(ground):len(ground) + len(tree)] == 5).mean() > 0.9
+    assert (c[-len(wires):] == 14).all()
+
+
+def test_a_smooth_mound_no_plane_holds_is_no_building():
+    """A patch is a roof or wall only when its main RANSAC plane holds PLANAR_SHARE of it:
+    a smooth, rounded heap 4 m high (spoil, gravel, or terrain the ground filter left
+    out) is locally as smooth and planar as a roof, but no plane holds most of it."""
+    g = np.arange(-12.0, 12.0, 0.3)
+    x, y = (a.ravel() for a in np.meshgrid(g, g))
+    xyz = np.column_stack([x, y, 4.0 * np.exp(-(x ** 2 + y ** 2) / (2 * 4.8 ** 2))])
+    c = classify_obstacles(xyz, xyz[:, 2] < 0.5, xyz[:, 2].astype(np.float32),
+                           cfg=CFG.obstacles).classes
+    assert (c[xyz[:, 2] >= 0.5] != 2).all() and not (c == 6).any()
 
 
 def test_a_tower_seen_only_below_its_arms_carries_the_wires_beside_it():
