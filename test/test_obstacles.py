@@ -151,6 +151,33 @@ def test_clearance_grid_by_hand():
     assert cells[4, 4] == -1  # nothing fell there
 
 
+def test_the_detectors_clearance_grid_is_centred_on_the_vehicle_else_on_the_cloud():
+    """A 20 m grid of 2 m cells around the vehicle's x, y (REP-103: x east = columns, y
+    north = rows from the south edge), or without a vehicle position around the middle of
+    the cloud's box. The cloud spans x 100-160, y 200-230, a 4 m box 6 m high at (137,
+    211); the vehicle flies over (141.3, 207.9) at 50 m."""
+    from lidar_obstacles.config import replace
+    from lidar_obstacles.core.pipeline import ObstacleDetector
+
+    cfg = replace(ObstacleDetectorConfig(), {"clearance.size": 20.0,
+                                             "clearance.resolution": 2.0})
+    rng = np.random.default_rng(0)
+    xy = rng.uniform([100, 200], [160, 230], (6000, 2))
+    z = rng.normal(0, 0.02, len(xy))
+    z[(np.abs(xy[:, 0] - 137) < 2) & (np.abs(xy[:, 1] - 211) < 2)] = 6.0
+    xyz = np.column_stack([xy, z])
+    # the cloud's middle (130, 215) - 10 m, down to whole cells: (120, 204)
+    alone = ObstacleDetector(cfg).process(xyz).clearance
+    assert alone.origin.tolist() == [120.0, 204.0] and alone.cells.shape == (10, 10)
+    # (141.3, 207.9) - 10 m, down to whole cells: (130, 196)
+    flying = ObstacleDetector(cfg).process(xyz, vehicle_xyz=np.array([141.3, 207.9, 50.0]))
+    grid = flying.clearance
+    assert grid.origin.tolist() == [130.0, 196.0] and grid.resolution == 2.0
+    assert grid.cells[7, 3] == 12  # the box: row (211 - 196) // 2, column (137 - 130) // 2
+    assert grid.cells[7, 8] == 0  # ground beside it
+    assert (grid.cells[:2] == -1).all()  # y 196-200: south of the cloud, nothing seen
+
+
 def test_local_shape_and_eigenvalues_by_hand():
     from lidar_obstacles.core.obstacles import local_shape, symmetric_eig3
 
