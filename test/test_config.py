@@ -75,6 +75,25 @@ def test_replace_validates_and_is_all_or_nothing():
         replace(cfg, {"tiling.size": float("nan")})
 
 
+@pytest.mark.parametrize("name, value, message", [
+    # YAML `true` (or `ros2 param set ... true`) is a Python bool, and bool is an int
+    ("tin.max_iterations", True, "expected an integer, got True"),
+    ("tiling.size", False, "expected a number, got False"),
+    ("tiling.size", "40", "expected a number, got '40'"),
+    ("tiling.size", 1000.5, "1000.5 is outside its range"),
+    ("tin.max_iterations", 501, "501 is outside its range"),
+])
+def test_a_value_of_the_wrong_type_or_past_the_maximum_is_refused(name, value, message):
+    with pytest.raises(ConfigError, match=f"parameter '{name}': {message}"):
+        replace(ObstacleDetectorConfig(), {name: value})
+
+
+def test_the_range_bounds_themselves_are_accepted():
+    cfg = replace(ObstacleDetectorConfig(), {"tiling.size": 1000.0, "tin.max_iterations": 1,
+                                             "ground.threshold": 0.05})
+    assert (cfg.tiling.size, cfg.tin.max_iterations, cfg.ground.threshold) == (1000.0, 1, 0.05)
+
+
 def test_params_file_forms(tmp_path):
     nested = tmp_path / "nested.yaml"
     nested.write_text("/**:\n  ros__parameters:\n    tiling:\n      size: 25.0\n"
