@@ -151,6 +151,9 @@ def test_latency():
     r = M.latency_stats(np.arange(1, 101) / 1000.0)
     assert r["n"] == 100 and r["max_s"] == pytest.approx(0.1)
     assert r["p50_s"] == pytest.approx(0.0505)
+    # linear interpolation between the 95th and 96th of 100 values, and so on
+    assert r["p95_s"] == pytest.approx(0.09505) and r["p99_s"] == pytest.approx(0.09901)
+    assert r["mean_s"] == pytest.approx(0.0505)
     assert M.latency_stats([])["p95_s"] is None
 
 
