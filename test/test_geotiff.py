@@ -122,6 +122,16 @@ def test_hillshade_png(tmp_path):
         assert img.size == (40, 30) and img.mode == "RGBA"
 
 
+def test_hillshade_slopes_are_per_metre_not_per_cell():
+    # z rising 1 m per 2 m cell eastwards is a slope of 0.5. Light from azimuth 315,
+    # altitude 45 degrees: direction (-0.5, 0.5, 0.7071), the surface normal (-s, 0, 1) /
+    # sqrt(1 + s^2), so the shade is (0.5 s + 0.7071) / sqrt(1 + s^2) = 0.8561 for s = 0.5
+    ramp = np.tile(np.arange(6.0), (5, 1))
+    expected = (0.25 + np.sqrt(0.5)) / np.sqrt(1.25)
+    np.testing.assert_allclose(hillshade(ramp, 2.0), expected)
+    np.testing.assert_allclose(hillshade(0.5 * ramp, 1.0), expected)
+
+
 @pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="Linux /proc only")
 def test_file_mode_follows_umask_without_changing_it(tmp_path, monkeypatch):
     """The mode is what open() would give under the umask of the moment, and the umask is
