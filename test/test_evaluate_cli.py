@@ -16,6 +16,41 @@ from lidar_obstacles.evaluate import LabelledInput
 from test_offline import cli_subprocess, run_cli
 
 
+def test_evaluate_measures_the_predicted_dem_against_the_reference(tmp_path, monkeypatch):
+    """Ground z = 0.1 x over 20 x 20 m, with a 4 x 4 m roof 5 m up that the detector
+    (stubbed: every point ground) took for ground. Its DEM stands 5 m above the reference
+    DEM over 16 of 400 cells: bias (estimate - reference) +0.2 m, not -0.2; the check
+    points are reference ground held out of both DEMs, so they sit on the plane, where
+    the predicted DEM is right."""
+    import laspy
+
+    from lidar_obstacles import evaluate as ev
+
+    g = np.arange(0.25, 20, 0.5)
+    x, y = (a.ravel() for a in np.meshgrid(g, g))
+    roof = (np.abs(x - 10) < 2) & (np.abs(y - 10) < 2)
+    las = laspy.LasData(laspy.LasHeader(point_format=1, version="1.2"))
+    las.x, las.y, las.z = x, y, 0.1 * x + np.where(roof, 5.0, 0.0)
+    las.classification = np.where(roof, 6, 2)
+    las.write(str(tmp_path / "roof.las"))
+
+    def every_point_ground(inp, cfg, progress=False):
+        for cloud in inp.clouds:
+            cloud.predicted = np.full(len(cloud.xyz), 2, np.uint8)
+        return []
+
+    monkeypatch.setattr(ev, "run_detector", every_point_ground)
+    dem = ev.evaluate(tmp_path / "roof.las")["dem"]
+    grid, checks = dem["grid"], dem["check_points"]
+    assert grid["n"] == 400
+    assert grid["bias_m"] == pytest.approx(0.2, abs=0.01)
+    assert grid["max_abs_m"] == pytest.approx(5.0, abs=0.2)
+    # about the reference DEM's own mean: SS_tot = 400 x 0.01 x (20^2 - 1) / 12 = 133,
+    # SS_res = 16 x 5^2 = 400
+    assert grid["r2"] == pytest.approx(1 - 400 / 133, abs=0.05)
+    assert checks["n"] > 80 and checks["rmse_m"] < 0.5
+
+
 def test_evaluate_replay_output_and_report(tmp_path):
     run_cli("simulate", tmp_path / "flight", "--duration", "2", "--seed", "2",
             "--scene", "corridor")
