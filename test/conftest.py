@@ -3,7 +3,12 @@ from __future__ import annotations
 
 import os
 import random
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
+from typing import Callable
 
 import pytest
 
@@ -21,3 +26,47 @@ def data_file(relative: str) -> Path:
     if not path.is_file():
         pytest.skip(f"shared data not present: {path}")
     return path
+
+
+def interrupt_while_importing(args: list[str], heavy: Callable[[str], bool], delay: float,
+                              sig: int = signal.SIGINT) -> tuple[int, str]:
+    """Run ``python -X importtime ARGS``, send it `sig` `delay` s after the first module for
+    which `heavy(name)` holds has been imported (-X importtime prints each module as its
+    import ends), and return its exit status and stderr.
+
+    The moment is the process's own, not a clock's, so a loaded machine cannot move the
+    signal out of the imports. Fails the test when the process ends before such a module."""
+    proc = subprocess.Popen([sys.executable, "-X", "importtime", *args], cwd=REPO,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    seen: list[str] = []
+    try:
+        for line in proc.stderr:  # "import time: self | cumulative | module"
+            seen.append(line)
+            if line.startswith("import time:") and heavy(line.rsplit("|", 1)[-1].strip()):
+                break
+        else:
+            pytest.fail("it ended before its modules were imported:\n" + "".join(seen))
+        time.sleep(delay)
+        proc.send_signal(sig)
+        _, rest = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return proc.returncode, "".join(seen) + rest
+
+
+def signal_at_import(entry: str, module: str, sig: int = signal.SIGINT) -> str:
+    """A script that runs ``main()`` of `entry` (a module, as a console script does) and
+    sends itself `sig` when `module` is first imported: the signal comes inside that
+    import, wherever it is made (a C extension's: numpy's of datetime), at a moment no
+    machine load can move."""
+    return (f"import os, sys\n"
+            f"class Signal:\n"
+            f"    def find_spec(self, name, path=None, target=None):\n"
+            f"        if name == {module!r}:\n"
+            f"            sys.meta_path.remove(self)\n"
+            f"            os.kill(os.getpid(), {int(sig)})\n"
+            f"sys.meta_path.insert(0, Signal())\n"
+            f"from {entry} import main\n"
+            f"sys.exit(main())\n")

@@ -5,15 +5,13 @@ from __future__ import annotations
 import argparse
 import os
 import re
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
-from conftest import REPO
+from conftest import REPO, interrupt_while_importing
 from lidar_obstacles.cli import build_parser, main
 
 
@@ -99,28 +97,11 @@ def test_ctrl_c_while_the_modules_are_imported_is_one_line_and_exit_130(delay, t
     it."""
     exe = Path(sys.executable).parent / "lidar-obstacles"
     script = [str(exe)] if exe.is_file() else ["-c", CONSOLE_SCRIPT]
-    proc = subprocess.Popen([sys.executable, "-X", "importtime", *script, "simulate",
-                             str(tmp_path / "bag"), "--duration", "600"],
-                            cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            text=True)
-    seen: list[str] = []
-    try:
-        for line in proc.stderr:  # "import time: self | cumulative | module"
-            seen.append(line)
-            module = line.rsplit("|", 1)[-1].strip()
-            if module.split(".")[0] == "numpy" or module.startswith("lidar_obstacles.core"):
-                break
-        else:
-            pytest.fail("the CLI ended before its modules were imported:\n" + "".join(seen))
-        time.sleep(delay)
-        proc.send_signal(signal.SIGINT)
-        _, rest = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    err = "".join(seen) + rest
+    code, err = interrupt_while_importing(
+        [*script, "simulate", str(tmp_path / "bag"), "--duration", "600"],
+        lambda module: module.split(".")[0] == "numpy" or module.startswith(
+            "lidar_obstacles.core"), delay)
     said = [x for x in err.splitlines() if not x.startswith("import time:")]
-    assert proc.returncode == 130 and "Traceback" not in err, err[-3000:]
+    assert code == 130 and "Traceback" not in err, err[-3000:]
     assert said in (["lidar-obstacles: interrupted"],
                     ["lidar-obstacles simulate: interrupted"]), said

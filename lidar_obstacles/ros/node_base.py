@@ -397,6 +397,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
     A bad parameter (out of range, unknown to every node, or a params file rcl cannot
     read) ends with one line on stderr and exit status 2.
     """
+    # First: a signal from here on stops the node cleanly (the console scripts'
+    # handlers, lidar_obstacles.scripts, cover the imports before).
+    stop = StopSignals()
     from rclpy._rclpy_pybind11 import RCLError
     from rclpy.signals import SignalHandlerOptions
 
@@ -406,7 +409,6 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
     # node that does not stop, or stalls (it keeps running).
     faulthandler.enable(all_threads=True)
     faulthandler.register(signal.SIGUSR1, all_threads=True)
-    stop = StopSignals()
     try:
         rclpy.init(args=args if args is not None else sys.argv,
                    signal_handler_options=SignalHandlerOptions.NO)

@@ -1,0 +1,52 @@
+"""The node executables' console scripts: `obstacle_detector`, `dem_builder` and
+`cloud_simplifier`.
+
+A console script imports its module before it calls ``main``, where a Ctrl-C can be caught;
+the node modules import rclpy, the message packages and numpy (~0.5 s), so a Ctrl-C in that
+time printed a traceback (and a SIGINT to a node started in the background, where it is
+ignored, was lost). These modules import only the standard library: :func:`start` sets
+the stop signals first, then imports the node. A signal while the node is imported stops
+it as a signal does later, once it runs: exit status 0, and one line instead of the
+traceback.
+"""
+from __future__ import annotations
+
+import importlib
+import signal
+import sys
+
+
+_RECEIVED: list[int] = []  # the stop signals received while the node was imported
+
+
+def _on_signal(signum: int, frame: object) -> None:
+    """Note the signal, then raise KeyboardInterrupt where the import is. Noted, because
+    the exception need not come out as itself: raised in an import that a C extension
+    makes (numpy's of datetime), it comes out as an ImportError, and a library that takes
+    that for a missing module goes on without it."""
+    _RECEIVED.append(signum)
+    raise KeyboardInterrupt
+
+
+def start(name: str, args: list[str] | None) -> int:
+    """Run node `name` (its module in lidar_obstacles.ros, whose ``main`` takes the
+    command line `args`) and return its exit status. The node's own handlers
+    (:class:`~lidar_obstacles.ros.node_base.StopSignals`) take over from these once it is
+    imported."""
+    # Ctrl-C as Python has it, also where a shell started the node in the background with
+    # SIGINT ignored (`kill -INT` then stops it, as it does the running node); SIGTERM too.
+    _RECEIVED.clear()  # (of an earlier call in this process)
+    signal.signal(signal.SIGINT, _on_signal)
+    signal.signal(signal.SIGTERM, _on_signal)
+    try:
+        node = importlib.import_module(f"lidar_obstacles.ros.{name}")
+        if _RECEIVED:
+            raise KeyboardInterrupt  # (taken for a missing module by an import)
+        return node.main(args)
+    except BaseException:
+        if not _RECEIVED:
+            raise
+        # a stop asked for, as when the node runs (status 0): no traceback
+        word = "terminated" if _RECEIVED[-1] == signal.SIGTERM else "interrupted"
+        print(f"{name}: {word}", file=sys.stderr)
+        return 0

@@ -1,0 +1,9 @@
+"""The `dem_builder` executable's console script: only the standard library is imported
+before main (see lidar_obstacles.scripts)."""
+from __future__ import annotations
+
+from lidar_obstacles.scripts import start
+
+
+def main(args: list[str] | None = None) -> int:
+    return start("dem_builder", args)
