@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import signal
 import sys
 from pathlib import Path
 
@@ -275,8 +276,26 @@ class _Terminated(KeyboardInterrupt):
     stopped, partial outputs removed."""
 
 
-def _on_sigterm(signum: int, frame: object) -> None:
-    raise _Terminated()
+_RECEIVED: list[int] = []  # the stop signals received, the latest last
+
+
+def _on_signal(signum: int, frame: object) -> None:
+    """Note the signal, then raise KeyboardInterrupt (SIGINT) or _Terminated (SIGTERM)
+    where the program is. Noted, because the exception need not come out as itself: raised
+    in an import that a C extension makes (numpy's of datetime), it comes out as an
+    ImportError, and a library that takes that for a missing module goes on without it."""
+    _RECEIVED.append(signum)
+    raise _Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+
+def _stopped(exc: BaseException) -> bool | None:
+    """Whether `exc` ends the program because of a stop signal: None when it does not
+    (a bug, to be raised), else True for SIGTERM, False for SIGINT."""
+    if _RECEIVED:  # (KeyboardInterrupt, or what an interrupted import made of it)
+        return _RECEIVED[-1] == signal.SIGTERM
+    if isinstance(exc, KeyboardInterrupt):  # (raised, not signalled)
+        return isinstance(exc, _Terminated)
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -295,22 +314,26 @@ def main(argv: list[str] | None = None) -> int:
         # stdout to /dev/null, so that Python's own flush at exit finds no pipe to fail on
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
-    except KeyboardInterrupt as exc:  # before _main's own handler: no command to name yet
-        terminated = isinstance(exc, _Terminated)
+    except BaseException as exc:  # before _main's own handler: no command to name yet
+        terminated = _stopped(exc)
+        if terminated is None:
+            raise
         print(f"lidar-obstacles: {'terminated' if terminated else 'interrupted'}",
               file=sys.stderr)
         return 143 if terminated else 130
 
 
 def _main(argv: list[str] | None) -> int:
-    import signal
-
+    _RECEIVED.clear()  # (of an earlier call in this process)
     # Ctrl-C as Python has it, also where the shell started the command in the background
     # with SIGINT ignored: `kill -INT` stops it as Ctrl-C does. First, so that the imports
     # below stop the same way (main catches what comes before the command's own try).
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    signal.signal(signal.SIGTERM, _on_sigterm)
+    signal.signal(signal.SIGINT, _on_signal)
+    signal.signal(signal.SIGTERM, _on_signal)
     from lidar_obstacles.core.arrays import reuse_freed_memory, single_threaded_blas  # numpy
+
+    if _RECEIVED:
+        raise KeyboardInterrupt  # (taken for a missing module by an import)
 
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
@@ -323,9 +346,12 @@ def _main(argv: list[str] | None) -> int:
     except LidarObstaclesError as exc:
         print(f"lidar-obstacles {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt as exc:
-        terminated = isinstance(exc, _Terminated)
-        detail = f" ({exc})" if str(exc) else ""  # what was done, `play`'s count
+    except BaseException as exc:
+        terminated = _stopped(exc)
+        if terminated is None:
+            raise
+        detail = f" ({exc})" if isinstance(exc, KeyboardInterrupt) and str(exc) else ""
+        # (what was done: `play`'s count)
         print(f"lidar-obstacles {args.command}: "
               f"{'terminated' if terminated else 'interrupted'}{detail}", file=sys.stderr)
         return 143 if terminated else 130

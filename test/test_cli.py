@@ -5,13 +5,14 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-from conftest import REPO, interrupt_while_importing
+from conftest import REPO, interrupt_while_importing, signal_at_import
 from lidar_obstacles.cli import build_parser, main
 
 
@@ -105,3 +106,16 @@ def test_ctrl_c_while_the_modules_are_imported_is_one_line_and_exit_130(delay, t
     assert code == 130 and "Traceback" not in err, err[-3000:]
     assert said in (["lidar-obstacles: interrupted"],
                     ["lidar-obstacles simulate: interrupted"]), said
+
+
+@pytest.mark.parametrize("sig, code, word", [(signal.SIGINT, 130, "interrupted"),
+                                             (signal.SIGTERM, 143, "terminated")])
+def test_a_signal_inside_an_import_a_c_extension_makes_is_one_line(sig, code, word, tmp_path):
+    # numpy's C core imports datetime: the KeyboardInterrupt raised there came out of numpy
+    # as an ImportError ("Importing the numpy C-extensions failed ... bad install"), a
+    # traceback and status 1
+    proc = subprocess.run([sys.executable, "-c", signal_at_import("lidar_obstacles.cli",
+                                                                  "datetime", sig),
+                           "simulate", str(tmp_path / "bag"), "--duration", "600"],
+                          cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert (proc.returncode, proc.stderr) == (code, f"lidar-obstacles: {word}\n")
