@@ -4,6 +4,7 @@ the next write of the same target."""
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 
@@ -132,3 +133,51 @@ def test_a_writer_killed_outright_leaves_its_partial_until_the_next_write(writer
         running.wait()
     assert _writer(writer, out, hold=False).wait() == 0  # (and now its partial goes too)
     assert {p.name for p in tmp_path.iterdir()} == {out.name, *others}
+
+
+# A writer that kills itself (kill -9) in the middle of swapping a folder over its target:
+# between the two renames (the target is gone, its copy is .NAME.old-PID...) or after them
+# (the new target is in place, the old copy not yet removed).
+KILL_IN_SWAP = """import os, shutil, signal
+_replace, _rmtree = os.replace, shutil.rmtree
+def replace(src, dst):
+    _replace(src, dst)
+    if ".old-" in os.fspath(dst) and os.environ["KILL_AT"] == "between":
+        os.kill(os.getpid(), signal.SIGKILL)
+def rmtree(path, *args, **kwargs):
+    if ".old-" in os.fspath(path) and os.environ["KILL_AT"] == "after":
+        os.kill(os.getpid(), signal.SIGKILL)
+    _rmtree(path, *args, **kwargs)
+os.replace, shutil.rmtree = replace, rmtree
+"""
+
+
+def _olds(folder) -> set[str]:
+    return {p.name for p in folder.iterdir() if ".old-" in p.name}
+
+
+@pytest.mark.parametrize("writer", ["folder", "bag"])
+@pytest.mark.parametrize("kill_at", ["between", "after"])
+def test_a_writer_killed_while_it_swaps_a_folder_loses_no_data(writer, kill_at, tmp_path):
+    from lidar_obstacles.io.atomic import remove_stale_partials
+
+    out = tmp_path / "out"
+    assert _writer(writer, out, hold=False).wait() == 0
+    (out / "mark").write_text("the old version")
+    proc = subprocess.run([sys.executable, "-c", KILL_IN_SWAP + SETUP + WRITERS[writer],
+                           str(out)], env={**os.environ, "KILL_AT": kill_at})
+    assert proc.returncode == -9
+    (old,) = _olds(tmp_path)
+    assert old.startswith(".out.old-") and out.exists() == (kill_at == "after")
+    # a live writer's old copy (this process's), and another target's, are not touched
+    rest = old.removeprefix(".out.")  # old-PID or old-PID-XXXXXXXX, PID the dead writer's
+    others = {".out." + re.sub(r"\d+", str(os.getpid()), rest, count=1),
+              f".xout.{rest}", f".outx.{rest}"}
+    for name in others:
+        (tmp_path / name).mkdir()
+    remove_stale_partials(out)  # what the next writer does first
+    # between: the old copy was the only one, and is the target again; after: the new
+    # target is whole, and the old copy is gone
+    assert (out / "mark").is_file() == (kill_at == "between")
+    assert _olds(tmp_path) == others
+    assert not [p for p in tmp_path.iterdir() if ".partial-" in p.name]

@@ -10,7 +10,9 @@ empty one): a folder, or a file of another kind, is the user's data.
 A writer killed outright (kill -9, the OOM killer, a power cut) cannot remove its
 temporary output, so each is named ``.NAME.partial-PID...`` after its target and its
 writer's process, and the next writer of the same target removes those whose process is
-gone (:func:`remove_stale_partials`).
+gone (:func:`remove_stale_partials`). A folder replaced is first renamed away to
+``.NAME.old-PID...``: killed between the two renames, the writer leaves the target only
+there, and the next writer renames it back before it writes anything.
 """
 from __future__ import annotations
 
@@ -100,30 +102,66 @@ def _alive(pid: int) -> bool:
 
 
 def remove_stale_partials(path: Path) -> None:
-    """Remove the temporary outputs of `path` (``.NAME.partial-PID...`` beside it, files
-    or folders) whose writer's process is gone, so that a writer killed outright leaves
-    them only until the next write of the same target. One whose process is alive is
-    another writer at work and stays; so do the temporary outputs of other targets, and
-    anything that cannot be removed (this is tidying, never a reason to fail)."""
+    """Tidy what writers of `path` killed outright left beside it, so that it stays only
+    until the next write of the same target:
+
+    - the temporary outputs (``.NAME.partial-PID...``, files or folders) are removed;
+    - the old copy a folder's swap makes (``.NAME.old-PID...``: the target renamed away,
+      then the new folder renamed to its name) is removed when `path` exists (the kill came
+      after the swap), and renamed back to `path` when it does not (the kill came between
+      the two renames: it is the only copy of the target), before anything is written.
+
+    Only the outputs of writers whose process is gone: one whose process is alive is
+    another writer at work and stays; so do the outputs of other targets, and anything
+    that cannot be removed (this is tidying, never a reason to fail)."""
     folder = path.parent if str(path.parent) else Path(".")
-    head = f".{path.name}.partial-"
+    partial, old = f".{path.name}.partial-", f".{path.name}.old-"
     # the PID, then nothing (a bag), or mkstemp's random part and the target's suffix
-    rest = re.compile(rf"(\d+)(?:-[a-z0-9_]{{8}}{re.escape(path.suffix)})?")
+    partial_rest = re.compile(rf"(\d+)(?:-[a-z0-9_]{{8}}{re.escape(path.suffix)})?")
+    old_rest = re.compile(r"(\d+)(?:-[a-z0-9_]{8})?")  # (a folder's: no suffix)
+
+    def stale(entry: os.DirEntry, head: str, rest: re.Pattern) -> bool:
+        found = rest.fullmatch(entry.name[len(head):])
+        return found is not None and not _alive(int(found.group(1)))
+
     try:
-        entries = [e for e in os.scandir(folder) if e.name.startswith(head)]
+        entries = [e for e in os.scandir(folder) if e.name.startswith((partial, old))]
     except OSError:
         return
-    for entry in entries:
-        found = rest.fullmatch(entry.name[len(head):])
-        if found is None or _alive(int(found.group(1))):
-            continue
-        if entry.is_dir(follow_symlinks=False):
-            shutil.rmtree(entry.path, ignore_errors=True)
-        else:
+    # Old copies first; with several (writers killed in turn), the latest swapped away.
+    olds = [e for e in entries if e.name.startswith(old) and stale(e, old, old_rest)]
+    for entry in sorted(olds, key=_changed, reverse=True):
+        if not os.path.lexists(path):
             try:
-                os.unlink(entry.path)
+                os.rename(entry.path, path)  # (fails on a folder made there meanwhile)
+                continue
             except OSError:
-                pass  # (gone meanwhile, another writer tidying too; or not ours to remove)
+                pass
+        if os.path.exists(path):  # (never the only copy; nor beside a dangling link)
+            _remove(entry)
+    for entry in entries:
+        if entry.name.startswith(partial) and stale(entry, partial, partial_rest):
+            _remove(entry)
+
+
+def _changed(entry: os.DirEntry) -> float:
+    """When `entry` was last renamed (its inode's change time, s), or 0."""
+    try:
+        return entry.stat(follow_symlinks=False).st_ctime
+    except OSError:
+        return 0.0
+
+
+def _remove(entry: os.DirEntry) -> None:
+    """Remove a file or folder, quietly: it may be gone meanwhile (another writer tidying
+    too), or not ours to remove."""
+    if entry.is_dir(follow_symlinks=False):
+        shutil.rmtree(entry.path, ignore_errors=True)
+    else:
+        try:
+            os.unlink(entry.path)
+        except OSError:
+            pass
 
 
 def umask() -> int:

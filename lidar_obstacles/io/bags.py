@@ -188,8 +188,11 @@ class BagWriter:
     Messages are written to a hidden ``.<name>.partial-<pid>`` folder beside ``out`` and the
     folder is renamed to ``out`` on a clean exit of the context; on an exception the
     partial folder is removed. An existing ``out`` is replaced only when the new bag is
-    complete. The partial folders of ``out`` whose writer was killed outright are removed
-    when the next one starts (:func:`~lidar_obstacles.io.atomic.remove_stale_partials`).
+    complete: renamed away to ``.<name>.old-<pid>``, the new bag renamed to ``out``, the old
+    one removed. What a writer killed outright left of ``out`` is tidied when the next one
+    starts (:func:`~lidar_obstacles.io.atomic.remove_stale_partials`): its partial folder
+    removed, and its old bag too, or renamed back to ``out`` when it was killed between the
+    renames (then the only copy).
     """
 
     def __init__(self, path: str | Path, *, storage: str = "mcap") -> None:
