@@ -65,6 +65,48 @@ def test_a_malformed_params_file_is_one_line_with_its_position_and_exit_2(tmp_pa
         "expected ',' or ']', but got '<stream end>'\n")
 
 
+def _bag_commands() -> list[str]:
+    """The subcommands whose input is a bag only (IN_BAG)."""
+    return sorted(name for name, parser in _subcommands().items()
+                  if any(a.dest == "src" and a.metavar == "IN_BAG" for a in parser._actions))
+
+
+def _las_file(path: Path) -> Path:
+    import laspy
+
+    las = laspy.LasData(laspy.LasHeader(point_format=1, version="1.2"))
+    las.x, las.y, las.z = [0.0, 1.0, 2.0], [0.0, 1.0, 0.0], [5.0, 5.0, 5.0]
+    las.write(str(path))
+    return path
+
+
+@pytest.mark.parametrize("command", _bag_commands())
+@pytest.mark.parametrize("name", ["survey.las", "survey.LAZ"])
+def test_a_las_file_given_for_a_bag_is_said_to_be_one_with_the_way_to_a_bag(
+        command, name, tmp_path, capsys):
+    # rosbags said "cannot open bag survey.las: Unrecognized storage format '.las'"
+    las = _las_file(tmp_path / name)
+    out = {"replay": [str(tmp_path / "out")], "export-dem": [str(tmp_path / "o.tif")]}
+    assert main([command, str(las), *out.get(command, [])]) == 2
+    assert capsys.readouterr().err == (
+        f"lidar-obstacles {command}: error: {las} is a LAS/LAZ file, not a bag: "
+        "`lidar-obstacles las2bag` turns it into one\n")
+
+
+def test_the_commands_that_read_only_bags_are_found():
+    assert _bag_commands() == ["export-dem", "play", "replay"]
+
+
+def test_a_las_file_named_otherwise_is_said_to_be_one_read_by_name(tmp_path, capsys):
+    # `evaluate` (as `tune`, `simplify`, `features`) reads LAS/LAZ files by their name
+    las = _las_file(tmp_path / "survey")
+    assert main(["evaluate", str(las), "--no-dem"]) == 2
+    assert capsys.readouterr().err == (
+        f"lidar-obstacles evaluate: error: {las} is a LAS/LAZ file, not a bag: "
+        "`lidar-obstacles las2bag` turns it into one (`evaluate`, `tune`, `simplify` and "
+        "`features` read it named .las or .laz)\n")
+
+
 @pytest.mark.parametrize("args", [["simulate", "{tmp}/bag", "--duration", "0.1", "--points",
                                    "100"], ["simulate", "--help"], ["--help"]])
 def test_a_reader_that_stops_early_ends_the_command_quietly(args, tmp_path):

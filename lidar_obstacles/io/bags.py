@@ -82,6 +82,11 @@ class BagReader:
         path = self.path
         if not path.exists():
             raise BagError(f"bag not found: {path}")
+        if _is_las_file(path):  # (rosbags: "Unrecognized storage format '.laz'")
+            named = "" if path.suffix.lower() in (".las", ".laz") else (
+                " (`evaluate`, `tune`, `simplify` and `features` read it named .las or .laz)")
+            raise BagError(f"{path} is a LAS/LAZ file, not a bag: `lidar-obstacles las2bag` "
+                           f"turns it into one{named}")
         # A bare .mcap/.db3 file without metadata.yaml: open its folder when that folder is the bag.
         if path.is_file() and path.suffix in (".mcap", ".db3"):
             if (path.parent / "metadata.yaml").is_file():
@@ -263,6 +268,17 @@ class BagWriter:
                 f.rename(self._tmp / new)
                 text = text.replace(f.name, new)
         meta.write_text(text)
+
+
+def _is_las_file(path: Path) -> bool:
+    """Whether `path` is a file that starts as a LAS or LAZ file does ("LASF")."""
+    if not path.is_file():
+        return False
+    try:
+        with open(path, "rb") as file:
+            return file.read(4) == b"LASF"
+    except OSError:
+        return False  # (rosbags will say what is wrong with it)
 
 
 def _ros1_misnamed(path: Path) -> str:
