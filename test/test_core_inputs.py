@@ -117,6 +117,30 @@ def test_far_in_z_leaves_tall_structures_and_steep_terrain_alone():
     assert not far_points(np.column_stack([xy, z])).any()
 
 
+@pytest.mark.parametrize("columns, dtype", [(2, np.float64), (3, np.float64), (3, np.float32)])
+def test_far_points_do_not_depend_on_the_order_of_the_points(columns, dtype):
+    # The bounds came from every k-th point: a cloud in another order had other quartiles,
+    # and points near a bound changed sides. Here 80 points lie around the bound in x (two
+    # columns) or in z (three), as far as the quartiles of 60 000 points are, +-20 m.
+    from lidar_obstacles.core.ground import FAR_IQRS, FAR_MARGIN, FAR_MARGIN_Z, far_points
+
+    rng = np.random.default_rng(3)
+    n = 60_000
+    xyz = np.column_stack([rng.uniform(0, 200, n), rng.uniform(0, 100, n),
+                           rng.normal(50, 10, n)])[:, :columns]
+    near_bound = np.linspace(-20, 20, 80)
+    if columns == 2:  # quartiles 50 and 150
+        xyz[:80, 0] = 150 + FAR_IQRS * 100 + FAR_MARGIN + near_bound
+    else:  # height quartiles 50 -+ 6.74, footprint 200 x 100
+        xyz[:80, 2] = 56.74 + FAR_IQRS * 13.49 + FAR_MARGIN_Z + np.hypot(200, 100) + near_bound
+    xyz = xyz.astype(dtype)
+    far = far_points(xyz)
+    assert 0 < far[:80].sum() < 80 and not far[80:].any()  # (the cloud tests what it should)
+    for seed in range(5):
+        order = np.random.default_rng(seed).permutation(n)
+        assert np.array_equal(far_points(xyz[order]), far[order])
+
+
 def test_far_points_keep_every_point_of_the_real_data():
     # the farthest point beyond 3 IQRs of its cloud's heights: 61 m (samp31), 42 m (AHN)
     from lidar_obstacles.core.ground import far_points
