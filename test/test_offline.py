@@ -270,17 +270,23 @@ def test_replay_writes_each_nodes_diagnostics_on_the_bags_clock(sim_bag, tmp_pat
     detector = diag["obstacle_detector: processing"][-1][2]
     assert int(detector["points_out"]) == obstacle_points > 0
     dem = diag["dem_builder: processing"][-1][2]
-    assert 0 < int(dem["points_out"]) <= int(dem["points_in"]) < summary["points"]
+    # in: the clouds' points, as dem_builder counts them (not the detector's ground points
+    # that replay hands the DEM)
+    assert 0 < int(dem["points_out"]) < int(dem["points_in"]) == summary["points"]
     assert int(dem["check_n"]) > 0 and float(dem["check_rmse_m"]) < 0.2
 
 
 def test_every_summary_counts_the_finite_points_of_an_organized_cloud(sim_bag, tmp_path):
     """An organized cloud (height > 1) holds NaN points where the scanner had no return:
     no command counts them as points. replay and export-dem counted width x height, where
-    evaluate, simplify and features counted the finite points."""
+    evaluate, simplify and features counted the finite points; replay's DEM diagnostics
+    counted the ground points the detector handed it, where dem_builder counts the
+    cloud's finite points."""
+    from lidar_obstacles.config import DemBuilderConfig
     from lidar_obstacles.io.bags import POINTCLOUD2, BagWriter
+    from lidar_obstacles.ros.stages import DemStage
 
-    organized, finite = tmp_path / "organized", 0
+    organized, finite, live = tmp_path / "organized", 0, 0
     with BagReader(sim_bag) as reader, BagWriter(organized) as bag:
         bag.add_topic("/points", POINTCLOUD2)
         for rec in list(reader.records(["/points"]))[:3]:
@@ -295,10 +301,13 @@ def test_every_summary_counts_the_finite_points_of_an_organized_cloud(sim_bag, t
             assert cloud.height > 1 and cloud.width * cloud.height > len(points) + width
             bag.write("/points", rec.stamp_ns, offline._serialize(cloud))
             finite += len(points)
+            live += DemStage(DemBuilderConfig()).process(cloud)["points_in"]  # dem_builder's
+    assert live == finite
     replayed = run_cli("replay", organized, tmp_path / "out")
     assert replayed["points"] == finite
-    diag = _diagnostics(tmp_path / "out")["obstacle_detector: processing"]
-    assert int(diag[-1][2]["points_in"]) == finite  # (as the node counts them)
+    for node in ("obstacle_detector", "dem_builder"):
+        diag = _diagnostics(tmp_path / "out")[f"{node}: processing"]
+        assert int(diag[-1][2]["points_in"]) == finite, node  # (as the nodes count them)
     assert run_cli("export-dem", organized, tmp_path / "dem.tif")["points"] == finite
     assert run_cli("evaluate", organized, "--no-dem")["n_points"] == finite
     assert run_cli("simplify", organized, tmp_path / "simple")["points_in"] == finite

@@ -272,7 +272,8 @@ class DemWork:
     """One cloud's ground, handed from the detector to the DEM in `replay`: plain data, so
     that the DEM can run in another process. ground_xyz (G, 3) float64 m in `frame_id`,
     ground_hag (G,) m above the detector's surface, vehicle_xyz (3,) m or None. Without
-    ground (None): no cloud, the DEM as it stands is due (the end of the bag)."""
+    ground (None): no cloud, the DEM as it stands is due (the end of the bag). points_in:
+    the cloud's finite points, what `dem_builder` counts as its points in."""
 
     stamp_ns: int
     record_ns: int
@@ -281,6 +282,7 @@ class DemWork:
     ground_xyz: np.ndarray | None = None
     ground_hag: np.ndarray | None = None
     reject_reasons: dict[str, int] = field(default_factory=dict)  # the clouds' so far
+    points_in: int = 0
 
 
 @dataclass(frozen=True)
@@ -403,6 +405,7 @@ class DemSchedule:
         else:
             stats = self.stage.add_ground(work.ground_xyz, work.ground_hag,
                                           stamp_ns=work.stamp_ns, frame_id=work.frame_id,
+                                          points_in=work.points_in,
                                           vehicle_xyz=work.vehicle_xyz)
             self._count(stats, work.stamp_ns)
             items = self._due(work.stamp_ns, work.record_ns)
@@ -507,7 +510,7 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                         deferred.append(DemWork(
                             work.stamp_ns, record.stamp_ns, work.frame_id,
                             pose.position if pose is not None else None, *work.dem_ground(),
-                            dict(stats.reject_reasons)))
+                            dict(stats.reject_reasons), points_in=n_points))
                 dem_items: list = []
                 if schedule is not None:
                     dem_items, dem_points = schedule.add_cloud(msg, pose, stamp_ns,

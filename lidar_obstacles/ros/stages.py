@@ -261,17 +261,20 @@ class DemStage:
                 "timings": timings, "seconds": time.perf_counter() - t0}
 
     def add_ground(self, ground_xyz: np.ndarray, ground_hag: np.ndarray, *, stamp_ns: int,
-                   frame_id: str, vehicle_xyz: np.ndarray | None = None) -> dict:
+                   frame_id: str, points_in: int, vehicle_xyz: np.ndarray | None = None
+                   ) -> dict:
         """Add one message's ground, already found by a DetectorStage that
         `shares_ground_with` this stage: ground_xyz (G, 3) float64 m in `frame_id` (the
-        detector's output frame), ground_hag (G,) m above the detector's ground surface."""
+        detector's output frame), ground_hag (G,) m above the detector's ground surface.
+        `points_in`: the message's finite points, which `process` would have taken (the
+        stats' points in, as the node counts them: not the G ground points)."""
         t0 = time.perf_counter()
         self.frame_id = frame_id
         self.last_stamp_ns = stamp_ns
         timings = self.pipeline.add_ground(ground_xyz, stamp=stamp_ns * 1e-9,
                                            vehicle_xyz=vehicle_xyz,
                                            height_above_ground=ground_hag)
-        return {"points_in": len(ground_xyz), "points_out": self.pipeline.last_added,
+        return {"points_in": points_in, "points_out": self.pipeline.last_added,
                 "timings": timings, "seconds": time.perf_counter() - t0}
 
     def grid(self) -> DemGrid:
