@@ -412,19 +412,37 @@ def test_a_worker_process_hands_its_errors_back():
 
 
 def test_a_failing_write_stops_replay_with_its_error(sim_bag, tmp_path, monkeypatch):
+    from multiprocessing.shared_memory import SharedMemory
+
     from lidar_obstacles.io.bags import BagWriter
+    from lidar_obstacles.io.shared_pickle import NAME_PREFIX
     from lidar_obstacles.ros.offline import replay
 
+    others: list[SharedMemory] = []
+
     def broken(self, topic, stamp_ns, raw):
+        # another program's block, made while the replay runs (all of /dev/shm was
+        # compared: another process's replay or test failed this one)
+        others.append(SharedMemory(create=True, size=1))
         raise OSError("disk full")
 
+    def ours() -> set[Path]:  # (its workers' too: forked, they name blocks the same)
+        return set(Path("/dev/shm").glob(NAME_PREFIX + "*"))
+
     monkeypatch.setattr(BagWriter, "write", broken)
-    shared_before = set(Path("/dev/shm").glob("psm_*"))
-    with pytest.raises(OSError, match="disk full"):
-        replay(sim_bag, tmp_path / "out")
-    assert list(tmp_path.iterdir()) == []  # nothing half-written left behind
-    # nor any cloud or result left in shared memory by the work cut short
-    assert set(Path("/dev/shm").glob("psm_*")) <= shared_before
+    assert NAME_PREFIX == f"lidar_obstacles_{os.getpid()}_"
+    shared_before = ours()
+    try:
+        with pytest.raises(OSError, match="disk full"):
+            replay(sim_bag, tmp_path / "out")
+        assert list(tmp_path.iterdir()) == []  # nothing half-written left behind
+        # nor any cloud or result left in shared memory by the work cut short
+        assert ours() <= shared_before
+        assert Path("/dev/shm", others[0].name.lstrip("/")).exists()  # (but not counted)
+    finally:
+        for block in others:
+            block.close()
+            block.unlink()
 
 
 @pytest.mark.slow

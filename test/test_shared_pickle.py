@@ -8,14 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lidar_obstacles.io.shared_pickle import (BlockPool, attach, discard_shared, from_shared,
-                                              to_shared)
+from lidar_obstacles.io.shared_pickle import (NAME_PREFIX, BlockPool, attach, discard_shared,
+                                              from_shared, to_shared)
 
 SHM = Path("/dev/shm")
 
 
 def blocks() -> set[Path]:
-    return set(SHM.glob("psm_*"))
+    """This test process's blocks (another process's, made meanwhile, would count)."""
+    return set(SHM.glob(NAME_PREFIX + "*"))
 
 
 def _round_trip_in_child(shared, out):

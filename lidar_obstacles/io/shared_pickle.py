@@ -18,10 +18,28 @@ the pool's owner takes it back once it knows the block was read.
 from __future__ import annotations
 
 import collections
+import os
 import pickle
+import secrets
 from dataclasses import dataclass
 from multiprocessing.shared_memory import SharedMemory
 from typing import Any
+
+# The start of the name of every block this package makes (`/dev/shm/NAME` on Linux): the
+# process that imported this module, whose forked workers (`replay`'s) keep it, so the
+# blocks of one run are known by it and never taken for another program's (psm_...).
+NAME_PREFIX = f"lidar_obstacles_{os.getpid()}_"
+
+
+def _create(size: int) -> SharedMemory:
+    """A new block of `size` bytes named NAME_PREFIX + 8 random hex digits. OSError when
+    there is no shared memory to be had."""
+    while True:
+        try:
+            return SharedMemory(name=NAME_PREFIX + secrets.token_hex(4), create=True,
+                                size=size)
+        except FileExistsError:
+            continue  # (one in 4 billion: another name)
 
 
 @dataclass(frozen=True)
@@ -56,7 +74,7 @@ class BlockPool:
             block = min(fits, key=lambda b: b.size)
             self._free.remove(block)
             return block
-        block = SharedMemory(create=True, size=_rounded(size + size // 4))
+        block = _create(_rounded(size + size // 4))
         self._blocks[block.name] = block
         return block
 
@@ -127,7 +145,7 @@ def to_shared(obj: Any, *, pool: BlockPool | None = None,
         return SharedPickle(head, into.name, sizes, kept=True)
     try:
         block = (pool.take(total) if pool is not None
-                 else SharedMemory(create=True, size=max(total, 1)))
+                 else _create(max(total, 1)))
     except OSError:
         # No shared memory to be had (a container's small /dev/shm is full, or there is
         # none): the whole object through the pipe, slower but the same.
