@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from lidar_obstacles.config import ObstacleDetectorConfig
 from lidar_obstacles.core.obstacles import classify_obstacles, clearance_grid
@@ -512,6 +513,130 @@ def test_a_crane_reaching_a_lower_conductor_seen_on_one_side_is_no_tower():
     res = classify_obstacles(xyz, truth == 2, xyz[:, 2].astype(np.float32), cfg=CFG.obstacles)
     assert (res.classes[truth == 14] == 14).mean() > 0.95
     assert (res.classes[truth == 26] == 15).mean() < 0.01 and len(res.towers) == 0
+
+
+def _line(rng, route: np.ndarray, height: float, sag: float):
+    """The simulator's lattice towers (`height` m) at route (T, 2) m and the catenaries of
+    their seven wires (six conductors on three arms, the earth wire on the peak; sag ratio
+    `sag`), sampled as a scan would hit them: a point every 0.5 m of member, 5 cm off it,
+    and every 0.4 m of wire, 3 cm off it. Returns the towers' points, one (P, 3) array
+    each, and the wires' (W, 3)."""
+    from lidar_obstacles.core.simulate import (_catenary, _rot_z, _to_world,
+                                               _tower_attachments, _tower_members)
+
+    step = np.diff(route, axis=0)
+    yaw = np.arctan2(step[:, 1], step[:, 0])
+    yaw = np.concatenate([yaw[:1], yaw])  # a straight line: every tower faces along it
+    towers = []
+    for xy, a in zip(route, yaw):
+        p0, p1, _ = _tower_members(height)
+        member = np.repeat(np.arange(len(p0)),
+                           np.maximum(1, (np.linalg.norm(p1 - p0, axis=1) / 0.5).astype(int)))
+        t = rng.random(len(member))[:, None]
+        pts = p0[member] + t * (p1[member] - p0[member]) + rng.normal(0, 0.05, (len(t), 3))
+        towers.append(pts @ _rot_z(a).T + [xy[0], xy[1], 0.0])
+    wires = []
+    for i in range(len(route) - 1):
+        ends = [_to_world(_tower_attachments(height), route[k], 0.0, yaw[k]) for k in (i, i + 1)]
+        for k in range(len(ends[0])):
+            c = _catenary(ends[0][k], ends[1][k], sag_ratio=sag * (0.8 if k == 6 else 1.0),
+                          step=0.4)
+            wires.append(c + rng.normal(0, 0.03, c.shape))
+    return towers, np.concatenate(wires)
+
+
+def _crossing(seed: int, angle: float, offset: float = 3.0):
+    """A 110 kV line of 38 m towers 200 m apart crossing at `angle` degrees under a 380 kV
+    line of 70 m towers 340 m apart (along x, its towers outside the scene, its wires
+    47-67 m up here): the lower line's tower at (0, offset) stands `offset` m from the
+    higher line's ground track, 8.6 m under its lowest conductor. Around it, 240 x 240 m:
+    an 18 m tree under the lower line's middle span 50 m or more from the higher line, its
+    crown 1 m under the lowest conductor and the others passing over it; a 21 m tree under
+    the edge of the higher line 12 m from the lower tower, its crown 1 m under the lower
+    line's lowest conductor; a 46 m crane 30 m along the higher line from the crossing,
+    1 m under its lowest conductor. Labels: 15 the lower tower, 16 the other towers (out
+    of the scene), 14 wires, 5 trees, 26 the crane, 2 ground."""
+    rng = np.random.default_rng(seed)
+    half = 120.0
+    parts, labels = [], []
+
+    def add(p, c):
+        keep = (np.abs(p[:, 0]) < half) & (np.abs(p[:, 1]) < half)
+        parts.append(p[keep])
+        labels.append(np.full(int(keep.sum()), c))
+
+    add(np.column_stack([rng.uniform(-half, half, (40000, 2)), rng.normal(0, 0.02, 40000)]), 2)
+    _, high = _line(rng, np.array([[-170.0, 0.0], [170.0, 0.0]]), 70.0, 0.026)
+    along = np.array([np.cos(np.radians(angle)), np.sin(np.radians(angle))])
+    across = np.array([-along[1], along[0]])
+    base = np.array([0.0, offset])
+    towers, low = _line(rng, base + np.outer([-200.0, 0.0, 200.0], along), 38.0, 0.02)
+    add(high, 14)
+    add(low, 14)
+    add(towers[1], 15)
+    add(np.concatenate([towers[0], towers[2]]), 16)
+
+    def under(wire, xy):  # the lowest wire point within 1 m of xy
+        near = np.hypot(*(wire[:, :2] - xy).T) < 1.0
+        return wire[near, 2].min()
+
+    def tree(xy, top):
+        crown = rng.normal(0, 1.0, (3000, 3)) * [1.5, 1.5, 2.0] + [xy[0], xy[1], top - 2.0]
+        trunk = np.column_stack([rng.normal(xy[0], 0.1, 300), rng.normal(xy[1], 0.1, 300),
+                                 rng.uniform(0.5, top - 4.0, 300)])
+        return np.concatenate([crown[crown[:, 2] < top], trunk])
+
+    far = base + 100.0 * along + 5.5 * across  # under the lowest conductor, mid-span
+    add(tree(far, under(low, far) - 1.0), 5)
+    near = base - 12.0 * along + 5.5 * across
+    add(tree(near, under(low, near) - 1.0), 5)
+    crane_xy = np.array([30.0 - offset / np.tan(np.radians(angle)), -5.5])
+    mast = np.column_stack([crane_xy + rng.uniform(-0.5, 0.5, (800, 2)),
+                            rng.uniform(0.5, under(high, crane_xy) - 1.0, 800)])
+    add(mast, 26)
+    return np.concatenate(parts), np.concatenate(labels)
+
+
+@pytest.mark.parametrize("angle", [30.0, 60.0, 90.0])
+def test_a_tower_under_a_crossing_higher_line_is_tower_but_trees_and_cranes_are_not(angle):
+    """The higher line's wires pass over the lower line's tower and, 15-40 m round it, hang
+    higher than its own: every wire said it carries none (it was vegetation). The wires
+    of a line crossing at an angle do not count against it; those of its own line still
+    do against the trees under it and the crane under the higher line."""
+    xyz, truth = _crossing(1, angle)
+    res = classify_obstacles(xyz, truth == 2, xyz[:, 2].astype(np.float32), cfg=CFG.obstacles)
+    c = res.classes
+    assert (c[truth == 15] == 15).mean() > 0.95
+    assert len(res.towers) == 1 and np.allclose(res.towers[0, :2], [0.0, 3.0], atol=0.5)
+    assert (c[truth == 5] == 15).sum() == 0
+    assert (c[truth == 26] == 15).sum() == 0
+    assert (c[truth == 14] == 14).mean() > 0.98
+
+
+def test_wire_directions_on_the_map_from_voxel_centroids():
+    """A bundle of two sub-conductors 0.45 m apart, a point every 2 cm (its 16 nearest
+    points lie across it as much as along), runs at 120 degrees; a wire at 30 degrees
+    crosses under it 6 m lower; a vertical drop and a lone point have no direction."""
+    from lidar_obstacles.core.obstacles import _WireDirections
+
+    rng = np.random.default_rng(0)
+    s = np.arange(-30.0, 30.0, 0.02)
+    a, b = np.radians(120.0), np.radians(30.0)
+    bundle = np.concatenate([np.column_stack([s * np.cos(a) - off * np.sin(a),
+                                              s * np.sin(a) + off * np.cos(a),
+                                              np.full_like(s, 20.0)])
+                             for off in (0.0, 0.45)])
+    other = np.column_stack([s * np.cos(b), s * np.sin(b), np.full_like(s, 14.0)])
+    drop = np.column_stack([np.full(50, 40.0), np.full(50, 40.0), np.linspace(10, 15, 50)])
+    lone = np.array([[-40.0, 40.0, 20.0]])
+    wires = np.concatenate([bundle, other, drop, lone])
+    wires += rng.normal(0, 0.02, wires.shape)
+    degree = _WireDirections(wires)(np.arange(len(wires)))
+    n = len(bundle)
+    # voxels hold one sub-conductor or both: their centroids zigzag, most at the ends
+    assert np.all(np.abs(degree[:n] - 120) <= 8) and np.median(np.abs(degree[:n] - 120)) <= 1
+    assert np.all(np.abs(degree[n:n + len(other)] - 30) <= 2)
+    assert np.all(degree[n + len(other):] == -1)
 
 
 def test_isolated_points_match_a_brute_force_count():

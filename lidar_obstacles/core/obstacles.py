@@ -12,9 +12,10 @@ and the main axis (`local_shape`; inside a crown's solid mass none of them is so
 3. The other points above `min_height` are grouped into objects: connected components of a
    voxel grid of edge `cluster_distance` (26-neighbourhood). Towers (15) are the tall
    objects that carry wires: wires touch their column, none passes above, and away from
-   them the wires sag lower on every side (at a tree under the line they do not). A
-   tower once recognised is remembered by the pipeline, so later strips that catch only
-   its legs still know it.
+   them the wires sag lower on every side (at a tree under the line they do not); the
+   wires of another line crossing over at an angle (a lower line's tower beside a higher
+   line's ground track) do not count against them. A tower once recognised is
+   remembered by the pipeline, so later strips that catch only its legs still know it.
 4. Buildings (6): smooth planar points joined into patches; a patch of at least
    `building_min_area` (in its own plane, so walls count) whose main plane, found by the
    paper's RANSAC with the robust eigenvalue fit, holds most of it is a roof or wall;
@@ -33,6 +34,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 from scipy import ndimage
@@ -74,6 +76,11 @@ TOWER_ARM = 7.5  # m: ... or from its arms, this far from the axis (a low flight
 SAG_NEAR, SAG_FAR = 15.0, 40.0  # m: ring around a tower where its wires must hang lower
 SAG_MIN_DROP = 0.3  # m: how much lower (95th percentile of the wire there)
 SAG_ONE_SIDE_RISE = 2.5  # m: how much higher, at most, when wire is seen on one side only
+LINE_REACH = 2.0  # m: the wire (voxels) this close to a wire point give its direction on the map
+LINE_SPREAD = 0.5  # m: ... when they spread at least this far along it (standard deviation)
+LINE_ANGLE = 15.0  # deg: wires within this of each other's direction run as one line
+LINE_SHARE = 0.2  # ... of the wire round an object at its height: a line it stands among
+LINE_SAMPLE = 256  # about this many wire points round an object tell its lines
 TOWER_BODY = (0.2, 0.35)  # towers: the band of the height (under the arms) whose spread
 TOWER_TAPER = 0.2  # m per m below it, + TOWER_LEG_MARGIN m, bounds the legs' spread
 TOWER_LEG_MARGIN = 1.0  # m
@@ -673,8 +680,91 @@ def _in_box(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
 
 
+class _WireDirections:
+    """The direction on the map of the wires (W, 3) m at each of their points, in whole
+    degrees 0-179 (-1: none), from the centroids of their WIRE_MEMORY_VOXEL voxels (on a
+    wire, on its line), each voxel's worked out when first asked for: a message asks for
+    those round the few objects the wires say no to. Voxels, not points: on the simulated
+    mixed flight, whose UAV scans wires densely, the points cost 68 ms for one object's
+    ring of wire, the voxels (made once a message) 6 ms."""
+
+    def __init__(self, wire_xyz: np.ndarray) -> None:
+        self.xyz = wire_xyz
+        self.voxel: np.ndarray | None = None
+
+    def __call__(self, idx: np.ndarray) -> np.ndarray:
+        """(C,) int: the direction at the wire points idx (C,) (indices into the wires)."""
+        if self.voxel is None:
+            self.centroids, self.voxel = _voxel_centroids(self.xyz, column_min(self.xyz),
+                                                          WIRE_MEMORY_VOXEL)
+            self.tree = search_tree(self.centroids)
+            self.degree = np.full(len(self.centroids), -2)  # -2: not worked out yet
+        v = self.voxel[idx]
+        new = np.unique(v[self.degree[v] == -2])
+        if len(new):
+            self.degree[new] = self._directions(self.centroids[new])
+        return self.degree[v]
+
+    def _directions(self, q: np.ndarray) -> np.ndarray:
+        """(Q,) int degrees (-1: none) of the wire at the (Q, 3) points q (m): the main axis
+        of the 2 x 2 covariance of the x, y of the voxel centroids within LINE_REACH, when
+        their spread along it is at least three times that across ((l1 - l2) / (l1 + l2)
+        > 0.5) and LINE_SPREAD (sqrt(l1); 0.58 m for a piece 2 m long): a lone piece, a
+        vertical drop (whose few centroids' noise may line up) has none. All of them, not
+        the nearest few: a bundle of sub-conductors 0.5 m apart has as many across it as
+        along within a few decimetres."""
+        pairs = search_tree(q).sparse_distance_matrix(self.tree, LINE_REACH,
+                                                      output_type="ndarray")
+        i, j = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+        # centred on the query point: survey coordinates keep their precision
+        dx = self.centroids[j, 0] - q[i, 0]
+        dy = self.centroids[j, 1] - q[i, 1]
+        count = np.bincount(i, minlength=len(q))
+        n = np.maximum(count, 1)
+        mx, my = np.bincount(i, dx, len(q)) / n, np.bincount(i, dy, len(q)) / n
+        cxx = np.bincount(i, dx * dx, len(q)) / n - mx * mx
+        cyy = np.bincount(i, dy * dy, len(q)) / n - my * my
+        cxy = np.bincount(i, dx * dy, len(q)) / n - mx * my
+        # the doubled angle's vector: a wire has one direction whichever way one looks
+        c2, s2 = cxx - cyy, 2.0 * cxy
+        spread = np.hypot(c2, s2)  # l1 - l2
+        ok = ((count >= 3) & (spread > 0.5 * (cxx + cyy))
+              & (cxx + cyy + spread >= 2.0 * LINE_SPREAD ** 2))
+        degree = np.round(np.degrees(np.arctan2(s2, c2) / 2.0)).astype(np.int64) % 180
+        return np.where(ok, degree, -1)
+
+
+def _line_filter(level: np.ndarray, directions: _WireDirections
+                 ) -> Callable[..., np.ndarray] | None:
+    """The wire of the lines an object stands among: own(idx, lone=True), for (C,)
+    indices into the wires (those of `directions`), gives (C,) bool, False for the wire
+    points running LINE_ANGLE or more off the direction of all but less than LINE_SHARE
+    of the wire points `level` (L,) round the object at its own height (of those with a
+    direction; about LINE_SAMPLE of them, evenly through the list, tell the shares), and
+    for those without a direction unless `lone`. The conductors of one line run side by
+    side, a line crossing it at an angle (a 110 kV line under a 380 kV one: 30-90
+    degrees); an angle tower stands among the wires of both its spans, about half of
+    them each. None: every wire counts (none round the object has a direction)."""
+    degree = directions(level[::max(1, len(level) // LINE_SAMPLE)])
+    degree = degree[degree >= 0]
+    if len(degree) == 0:
+        return None
+    # the share of them within LINE_ANGLE (in whole degrees, strictly) of each degree
+    w = int(LINE_ANGLE) - 1
+    count = np.bincount(degree, minlength=180)
+    window = np.cumsum(np.concatenate([[0], count[-w:], count, count[:w]]))
+    lines = window[2 * w + 1:] - window[:180] >= LINE_SHARE * len(degree)
+
+    def own(idx: np.ndarray, lone: bool = True) -> np.ndarray:
+        d = directions(idx)
+        return np.where(d >= 0, lines[d], lone)
+
+    return own
+
+
 def _wires_sag_away(top_xy: np.ndarray, top_z: float, touching: np.ndarray,
-                    wire_xyz: np.ndarray, wire_xy_tree: cKDTree) -> bool:
+                    wire_xyz: np.ndarray, wire_xy_tree: cKDTree,
+                    own: Callable[..., np.ndarray] | None = None) -> bool:
     """True when the wires sag away from an object on every side: they hang from it.
 
     top_xy (2,) is the object's top, top_z (m) its height, touching (T, 3) the wire points
@@ -685,12 +775,19 @@ def _wires_sag_away(top_xy: np.ndarray, top_z: float, touching: np.ndarray,
     apart: then the attachment decides). The top wire decides (95th percentiles):
     a tower carries the highest wire, a tree touches lower ones at most. When the cloud
     holds no wire beyond SAG_NEAR (a narrow strip of a live scan) the attachment alone
-    decides; when it holds wire only further than SAG_FAR, the touching pieces are no span."""
+    decides; when it holds wire only further than SAG_FAR, the touching pieces are no span.
+    With `own` (`_line_filter`), only the wire of the object's own lines counts, and
+    beyond SAG_NEAR only such wire with a direction (a lone stray point shows no span)."""
     far = np.asarray(wire_xy_tree.query_ball_point(top_xy, r=SAG_FAR), np.int64)
     d = row_norm(wire_xyz[far, :2] - top_xy)
     far = far[d > SAG_NEAR]
+    if own is not None and len(far):
+        far = far[own(far)]
     if len(far) < 10:
-        return not bool((row_norm(wire_xyz[:, :2] - top_xy) > SAG_NEAR).any())
+        beyond = np.flatnonzero(row_norm(wire_xyz[:, :2] - top_xy) > SAG_NEAR)
+        if own is not None and len(beyond):
+            beyond = beyond[own(beyond, lone=False)]
+        return not len(beyond)
     rel = wire_xyz[far, :2] - top_xy
     direction = np.linalg.eigh(rel.T @ rel)[1][:, -1]
     side = rel @ direction > 0
@@ -795,11 +892,14 @@ def _known_columns(xy: np.ndarray, known: np.ndarray) -> np.ndarray:
 
 
 def _carries_wires(p: np.ndarray, h: np.ndarray, top: np.ndarray, column: np.ndarray,
-                   wire_xyz: np.ndarray, wire_tree: cKDTree, wire_xy_tree: cKDTree) -> bool:
+                   wire_xyz: np.ndarray, wire_tree: cKDTree, wire_xy_tree: cKDTree,
+                   directions: _WireDirections) -> bool:
     """True when the tall object p (M, 3) m, h (M,) m above ground, whose `column` (M,) bool
     stands round the axis `top` (2,) m, carries the wires (W, 3) m (trees: wire_tree on
-    xyz, wire_xy_tree on their xy): wires touch it or hang right over its top, none passes
-    higher over it, and they sag away from it."""
+    xyz, wire_xy_tree on their xy; `directions` theirs on the map): wires touch it or hang
+    right over its top, none passes higher over it, and they sag away from it; or so when
+    only the wires of its own lines count, not those of a line crossing over at an angle
+    (`_line_filter`)."""
     top_h = float(h.max())
     dist, near = wire_tree.query(p[column], distance_upper_bound=TOWER_WIRE_GAP)
     col_top = p[column, 2].max()
@@ -809,15 +909,43 @@ def _carries_wires(p: np.ndarray, h: np.ndarray, top: np.ndarray, column: np.nda
     peak = np.asarray(wire_xy_tree.query_ball_point(top, r=TOWER_ARM), np.int64)
     peak = peak[(wire_xyz[peak, 2] >= col_top) & (wire_xyz[peak, 2] <= col_top + TOWER_PEAK)]
     touching = np.unique(np.concatenate([near[np.isfinite(dist)], peak]))
+    if not len(touching):
+        return False
     # Wire higher than that within TOWER_WIRE_GAP (horizontally) of its upper half
     # passes over it. Only the few wire points that high are searched for: a forest's
     # tall component listing the wires near each of its points cost ~9 ms a message.
-    high_wire = wire_xyz[wire_xyz[:, 2] > col_top + TOWER_PEAK, :2]
+    over = np.flatnonzero(wire_xyz[:, 2] > col_top + TOWER_PEAK)
     upper = p[column & (h > 0.5 * top_h), :2]
-    wire_above = bool(len(high_wire)) and bool(len(upper)) and bool(np.isfinite(
-        cKDTree(upper).query(high_wire, distance_upper_bound=TOWER_WIRE_GAP)[0]).any())
-    return bool(len(touching)) and not wire_above and _wires_sag_away(
-        top, col_top, wire_xyz[touching], wire_xyz, wire_xy_tree)
+    if len(over) and len(upper):
+        over = over[np.isfinite(cKDTree(upper).query(
+            wire_xyz[over, :2], distance_upper_bound=TOWER_WIRE_GAP)[0])]
+    else:
+        over = over[:0]
+
+    def carries(own) -> bool:
+        return (not (len(over) and (own is None or own(over).any()))
+                and _wires_sag_away(top, col_top, wire_xyz[touching], wire_xyz, wire_xy_tree,
+                                    own))
+
+    if carries(None):
+        return True
+    # Every wire says no. Those of another line crossing over it at an angle do not count:
+    # a tower of a lower line beside the ground track of a higher one has that line's
+    # wires passing over it, and higher than its own 15-40 m round it (a synthetic 38 m
+    # tower 3-25 m from a 380 kV line's track, crossing at 30-90 degrees: vegetation).
+    # Its own lines are the wires round it at its own height (not passing over), from
+    # its column's edge (a tower's arms, which may be taken for wire, run across its
+    # line) out to SAG_NEAR beyond. A tree or crane reaching a conductor still has that
+    # line's higher ones passing over it, and its wires rising away; asked only when all
+    # the wires say no, so whatever carried them before still does. A crossing line less
+    # than TOWER_PEAK over the top is taken for attached, and its own (synthetic: 5.6 m
+    # under it the tower is found, 4.6 m under it not).
+    col_r = TOWER_RADIUS * top_h
+    around = np.asarray(wire_xy_tree.query_ball_point(top, r=col_r + SAG_NEAR), np.int64)
+    around = around[(row_norm(wire_xyz[around, :2] - top) > col_r)
+                    & (wire_xyz[around, 2] <= col_top + TOWER_PEAK)]
+    own = _line_filter(around, directions)
+    return own is not None and carries(own)
 
 
 def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.ndarray,
@@ -835,6 +963,7 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
         return is_tower, feet, np.zeros((0, 4))
     wire_tree = cKDTree(wire_xyz) if len(wire_xyz) else None
     wire_xy_tree = cKDTree(wire_xyz[:, :2]) if len(wire_xyz) else None
+    directions = _WireDirections(wire_xyz)
     for lab in np.concatenate([tall, stubs]):
         local = np.flatnonzero(labels == lab)  # a few tall objects: cheaper than sorting
         p, h = xyz[members[local]], hag[members[local]]
@@ -869,7 +998,8 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
         if not column.any():
             continue  # no mast at the top's middle: a ring of tall things
         carries = (not stub and wire_tree is not None
-                   and _carries_wires(p, h, top, column, wire_xyz, wire_tree, wire_xy_tree))
+                   and _carries_wires(p, h, top, column, wire_xyz, wire_tree, wire_xy_tree,
+                                      directions))
         if seen < 0 and not carries:
             continue
         tower_h = top_h
