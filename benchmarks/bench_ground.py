@@ -3,7 +3,8 @@
 - ISPRS filter test, 15 samples, one parameter set: Type I/II, total error, kappa, and the
   share of 6 x 6 blocks (eligible ones: >= 5 % of each class) with kappa > 0.8 (the
   paper's test). Speed of the ground filter alone (`classify_ground`, what the target is
-  about) and of the whole detector, in points per second.
+  about) and of the whole detector, in points per second. The other two filters
+  (`ground.method` `tin` and `ransac`) on the same samples, measured as the anchors are.
 - Anchors in the same run on the same samples: `pysmrf` (SMRF in Python with PDAL's
   parameters; PDAL's C++ SMRF runs ~5.5 x faster than it) and `cloth-simulation-filter`
   (CSF, C++), accuracy and speed; `open3d-cpu`'s RANSAC `segment_plane` against this
@@ -22,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_obstacles.config import ObstacleDetectorConfig
+from lidar_obstacles.config import ObstacleDetectorConfig, replace
 from lidar_obstacles.core.ground import classify_ground
 from lidar_obstacles.core.metrics import block_kappa, evaluate_classes, ground_object_errors
 from lidar_obstacles.core.pipeline import ObstacleDetector
@@ -65,6 +66,17 @@ def best_of_paired(fn, anchor_fn, repeats: int) -> tuple[float, object, float]:
 def ground_only(xyz: np.ndarray) -> np.ndarray:
     return classify_ground(xyz, tiling=CFG.tiling, ground=CFG.ground, tin=CFG.tin,
                            ransac=CFG.ransac, rng=np.random.default_rng(0)).ground
+
+
+def method_ground(method: str):
+    """The ground mask of `ground.method` `method` (the other two filters, measured as the
+    anchors are)."""
+    cfg = replace(CFG, {"ground.method": method})
+
+    def ground(xyz: np.ndarray) -> np.ndarray:
+        return classify_ground(xyz, tiling=cfg.tiling, ground=cfg.ground, tin=cfg.tin,
+                               ransac=cfg.ransac, rng=np.random.default_rng(0)).ground
+    return ground
 
 
 def pysmrf_ground(xyz: np.ndarray) -> np.ndarray:
@@ -217,7 +229,8 @@ def main() -> None:
         "blocks_share_kappa_gt_0_8": pooled_share(smrf_blocks)}
     csf = anchor("CSF", csf_ground, clouds, repeats=1)  # ~100 x slower: one run is plenty
     rans = ransac_anchor(clouds[:4] if args.quick else clouds)
-    out["isprs"].update(pysmrf=smrf, csf=csf, ransac_vs_open3d=rans)
+    methods = {m: anchor(m, method_ground(m), clouds, repeats=1) for m in ("tin", "ransac")}
+    out["isprs"].update(pysmrf=smrf, csf=csf, ransac_vs_open3d=rans, methods=methods)
 
     print("| ISPRS sample | Type I % | Type II % | total % | kappa |\n|---|---|---|---|---|")
     for s, a, b, c, k in rows:
@@ -236,7 +249,8 @@ def main() -> None:
 
     print(f"| this package (hybrid) | {100 * mean[2]:.2f} | {mean[3]:.3f} | "
           f"{100 * share08:.1f} | {ours_pps:,.0f} | **{ratio(ours_pps)}** |")
-    for name, a in (("pysmrf", smrf), ("CSF", csf)):
+    for name, a in (("this package (tin)", methods["tin"]),
+                    ("this package (ransac)", methods["ransac"]), ("pysmrf", smrf), ("CSF", csf)):
         if a:
             print(f"| {name} | {100 * a['mean_total_error']:.2f} | {a['mean_kappa']:.3f} | "
                   f"{100 * a['blocks_share_kappa_gt_0_8']:.1f} | "

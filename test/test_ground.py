@@ -385,8 +385,9 @@ def test_dense_scans_reject_low_objects_that_sparse_scans_cannot():
 
 
 def test_tin_min_edge_stops_densifying_small_triangles():
-    # a flat 40 x 40 m field at 1 m spacing: with no minimum every point inside the seeds'
-    # hull joins the ground; with a minimum longer than the seed spacing no triangle is
+    # a flat 40 x 40 m field at 1 m spacing: with no minimum every point joins the ground
+    # (the virtual seeds round the box put every point inside the TIN, beyond the real
+    # seeds' hull too); with a minimum longer than the seed spacing no triangle is
     # densified: only the seeds
     g = np.arange(0.5, 40, 1.0)
     gx, gy = np.meshgrid(g, g)
@@ -403,6 +404,67 @@ def test_tin_min_edge_stops_densifying_small_triangles():
     seeds = ground(40.0)
     assert seeds.sum() == 16
     inside = Delaunay(xyz[seeds, :2]).find_simplex(xyz[:, :2]) >= 0
-    assert np.array_equal(everything, inside)  # the lowest point of each 10 m cell
+    assert everything.all() and not inside.all()
     # a minimum of a few metres stops at about that spacing: most points stay unjudged
     assert 16 < ground(4.0).sum() < 0.5 * everything.sum()
+
+
+def _bridge(rng):
+    """A valley 10 m deep (banks at 2:1) along y, and a bridge deck 10 m wide at the level of
+    the banks across it; the ground under the deck is hidden from an airborne scanner.
+    Returns (ground (G, 3), deck (D, 3)) m."""
+    xy = rng.uniform(0, 100, (30000, 2))
+    depth = np.clip(np.minimum(xy[:, 0] - 30, 70 - xy[:, 0]) * 2.0, 0, 10)
+    ground = np.column_stack([xy, 100 - depth + rng.normal(0, 0.03, len(xy))])
+    under = (xy[:, 0] > 28) & (xy[:, 0] < 72) & (xy[:, 1] > 45) & (xy[:, 1] < 55)
+    deck_xy = np.column_stack([rng.uniform(28, 72, 3000), rng.uniform(45, 55, 3000)])
+    return ground[~under], np.column_stack([deck_xy, 100 + rng.normal(0, 0.03, 3000)])
+
+
+# The TIN takes ~10-20 s on these scenes (a Delaunay triangulation and a point location
+# per round, 40 rounds).
+SLOW_TIN = ["hybrid", pytest.param("tin", marks=pytest.mark.slow), "ransac"]
+
+
+@pytest.mark.parametrize("method", SLOW_TIN)
+def test_each_filter_on_a_bridge(method):
+    # ISPRS counts a bridge as an object; to a UAV its deck is one, 10 m over the valley.
+    ground, deck = _bridge(np.random.default_rng(8))
+    res = _run(np.concatenate([ground, deck]), method)
+    middle = (deck[:, 0] > 36) & (deck[:, 0] < 64)  # the span, off the banks
+    on_deck = res.ground[len(ground):]
+    floor = ground[:, 2] < 90.5
+    if method == "ransac":
+        # The paper's one plane per tile: a deck level with the road it carries is that
+        # plane, and the valley floor beside it is off it (a known limit, in the README).
+        assert on_deck[middle].mean() > 0.9
+        return
+    if method == "tin":
+        # The TIN climbs onto the deck from its abutments, a point a facet and round (a
+        # known limit of the densification, in the README), but not across the span.
+        assert on_deck[middle].mean() < 0.25
+        assert res.ground[:len(ground)][floor].mean() > 0.8
+        return
+    assert not on_deck[middle].any()
+    np.testing.assert_allclose(np.median(res.height_above_ground[len(ground):][middle]), 10.0,
+                               atol=0.5)
+    assert res.ground[:len(ground)][floor].mean() > 0.99
+
+
+@pytest.mark.parametrize("method", SLOW_TIN)
+def test_each_filter_on_a_slope_a_step_and_a_roof(method):
+    rng = np.random.default_rng(2)
+    xy = rng.uniform(0, 80, (20000, 2))
+    slope = np.column_stack([xy, 100 + 0.3 * xy[:, 0] + rng.normal(0, 0.03, len(xy))])
+    step = np.column_stack([xy, 100 + np.clip((xy[:, 0] - 40) * 1.5, 0, 3)
+                            + rng.normal(0, 0.03, len(xy))])
+    flat = np.column_stack([xy, 100 + rng.normal(0, 0.03, len(xy))])
+    under = np.all((xy > (20, 20)) & (xy < (40, 35)), axis=1)
+    roof = np.column_stack([rng.uniform((20, 20), (40, 35), (3000, 2)),
+                            108 + rng.normal(0, 0.03, 3000)])
+    kept = {"hybrid": 0.99, "tin": 0.9, "ransac": 0.95}[method]
+    assert _run(slope, method).ground.mean() > kept  # 17 degrees
+    assert _run(step, method).ground.mean() > kept  # a 3 m embankment over 2 m
+    res = _run(np.concatenate([flat[~under], roof]), method)
+    assert res.ground[:(~under).sum()].mean() > kept
+    assert not res.ground[(~under).sum():].any()

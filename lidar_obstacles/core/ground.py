@@ -80,9 +80,20 @@ from lidar_obstacles.core.arrays import (all_columns, cell_index, column_max, co
 from lidar_obstacles.core.ransac import ransac_plane
 from lidar_obstacles.errors import CloudFormatError
 
-# TIN variant: a seed this far below the median of its neighbouring seeds is a low blunder.
+# TIN variant: a seed this far below the plane of its neighbouring seeds is a low blunder.
 LOW_SEED_DROP = 2.0  # m
 HIGH_SEED_DROP = 5.0  # m: a seed this far above its neighbours is an object's lowest point
+# Axelsson's vertex angles asin(d / S) are judged with S at least this far (m): next to a
+# vertex S is tiny and the angle meaningless (a ground point 0.3 m from an accepted one
+# and 0.12 m off the facet's plane is at 23 degrees), so real ground there never joined
+# (ISPRS samp22: 56 % of the ground left out failed the angles alone, with d < 1 m).
+# ISPRS mean total error / kappa with the box seeds and the plane seed test: 11.36 % / 0.700
+# (Type I 15.9 %) without a floor, 8.22 % / 0.762 (Type I 8.7 %, Type II 8.0 %) with 2 m;
+# all passing points of a facet at once instead of the closest: 1.5 / 2 / 3 m 8.22 / 7.75 /
+# 7.81 %, kappa 0.763 / 0.770 / 0.762 (3 m: Type II 15.5 %), but then a facet takes its
+# points before it is split and `tin.min_edge` no longer bounds the density; 15 degrees
+# instead of 20 (1.5 m, all at once) 9.94 %.
+ANGLE_MIN_REACH = 2.0  # m
 
 
 @dataclass(frozen=True)
@@ -299,22 +310,50 @@ def _lowest_per_cell(xy: np.ndarray, z: np.ndarray, cell: float) -> np.ndarray:
 
 
 def _drop_odd_seeds(seeds_xyz: np.ndarray) -> np.ndarray:
-    """(S,) bool: seeds that are neither far below the median of their 8 nearest seeds (a
-    low blunder) nor far above it (a cell holding only an object, e.g. a wire at the edge)."""
+    """(S,) bool over seeds (S, 3) m: those neither far below the least-squares plane of
+    their 8 nearest seeds (a low blunder) nor far above it (a cell holding only an object,
+    e.g. a wire at the edge). The plane, not the neighbours' median: on a slope the median
+    of an edge seed's neighbours (all uphill, or all down) lies a cell's rise away, and
+    a 17 degree hillside lost its first and last rows of seeds."""
     if len(seeds_xyz) < 5:
         return np.ones(len(seeds_xyz), bool)
     k = min(9, len(seeds_xyz))
     _, nn = cKDTree(seeds_xyz[:, :2]).query(seeds_xyz[:, :2], k=k)
-    med = np.median(seeds_xyz[nn[:, 1:], 2], axis=1)
-    return (seeds_xyz[:, 2] > med - LOW_SEED_DROP) & (seeds_xyz[:, 2] < med + HIGH_SEED_DROP)
+    rel = seeds_xyz[nn[:, 1:]] - seeds_xyz[:, None, :]  # (S, k-1, 3) around each seed
+    design = np.concatenate([rel[:, :, :2], np.ones(rel.shape[:2] + (1,))], axis=2)
+    normal = np.einsum("ski,skj->sij", design, design) + 1e-9 * np.eye(3)
+    rhs = np.einsum("ski,sk->si", design, rel[:, :, 2])
+    # the plane z = a x + b y + c through the neighbours, relative to the seed: c is the
+    # plane's height over the seed, so the seed stands -c above the plane
+    above = -np.linalg.solve(normal, rhs[..., None])[:, 2, 0]
+    return (above > -LOW_SEED_DROP) & (above < HIGH_SEED_DROP)
+
+
+def _box_seeds(xy: np.ndarray, seeds_xyz: np.ndarray, spacing: float) -> np.ndarray:
+    """(B, 3) m: virtual seeds every `spacing` m (at most) round the box of xy (N, 2) m,
+    1 m outside it, each at the height of the nearest real seed of seeds_xyz (S, 3) m, so
+    that the TIN covers every point. Without them the seeds' hull left the points outside
+    it unjudged: the lowest point of a cell on a slope lies at its downhill edge, so the
+    top row of cells (a quarter of an 80 m square at 20 m cells) never became ground."""
+    lo, hi = column_min(xy) - 1.0, column_max(xy) + 1.0
+    nx, ny = (np.ceil((hi - lo) / spacing).astype(np.int64) + 1).tolist()
+    ex, ey = np.linspace(lo[0], hi[0], max(nx, 2)), np.linspace(lo[1], hi[1], max(ny, 2))
+    ring = np.concatenate([np.column_stack([ex, np.full(len(ex), lo[1])]),
+                           np.column_stack([ex, np.full(len(ex), hi[1])]),
+                           np.column_stack([np.full(len(ey) - 2, lo[0]), ey[1:-1]]),
+                           np.column_stack([np.full(len(ey) - 2, hi[0]), ey[1:-1]])])
+    _, nearest = cKDTree(seeds_xyz[:, :2]).query(ring)
+    return np.column_stack([ring, seeds_xyz[nearest, 2]])
 
 
 def _facet_test(tri: Delaunay, ground_xyz: np.ndarray, pts: np.ndarray, simplex: np.ndarray,
                 max_distance: float, max_angle_deg: float, min_edge: float = 0.0
                 ) -> tuple[np.ndarray, np.ndarray]:
-    """(M,) bool accepted and (M,) distance (m) to the facet plane, for points pts (M, 3) m
-    inside facets `simplex` (M,) of the TIN of ground_xyz (G, 3) m. A facet whose longest
-    horizontal edge is below `min_edge` m is dense enough and takes no more points."""
+    """(M,) bool accepted and (M,) distance (m) to the facet's plane, of points pts (M, 3) m
+    inside facets `simplex` (M,) of the TIN of ground_xyz (G, 3) m: within max_distance of
+    the facet's plane, and at most max_angle_deg from it seen from each vertex (asin(d / S),
+    S at least ANGLE_MIN_REACH). A facet whose longest horizontal edge is below `min_edge`
+    m is dense enough and takes no more points."""
     v = ground_xyz[tri.simplices[simplex]]  # (M, 3 vertices, 3)
     normal = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
     norm = np.linalg.norm(normal, axis=1)
@@ -322,16 +361,46 @@ def _facet_test(tri: Delaunay, ground_xyz: np.ndarray, pts: np.ndarray, simplex:
     d = np.abs(np.einsum("ij,ij->i", normal, pts - v[:, 0])) / norm
     s = np.linalg.norm(v - pts[:, None, :], axis=2)  # distances to the three vertices
     sin_max = np.sin(np.radians(max_angle_deg))
-    ok = (d < max_distance) & np.all(d[:, None] < sin_max * np.maximum(s, 1e-9), axis=1)
+    ok = (d < max_distance) & np.all(d[:, None] < sin_max * np.maximum(s, ANGLE_MIN_REACH),
+                                     axis=1)
     if min_edge > 0:
         edges = v[:, [1, 2, 0], :2] - v[:, :, :2]  # (M, 3 edges, 2)
         ok &= np.einsum("mei,mei->me", edges, edges).max(axis=1) >= min_edge * min_edge
     return ok, d
 
 
+def _locate(tri: Delaunay, xy: np.ndarray) -> np.ndarray:
+    """(M,) the facet of `tri` holding each point of xy (M, 2) m, -1 outside.
+
+    By matplotlib's trapezoid map (O(log n) a point), not Qhull's walk: on a dense TIN the
+    walk often fails on slivers and falls back to trying every facet, so locating the
+    points took 94 of 103 s of a 20 000-point slope (one round 9.8 s, the map 0.28 s to
+    build and 3 ms to search, the same facets). A triangulation the map cannot take
+    (Qhull's zero-area facets on degenerate input) is walked as before."""
+    from matplotlib.tri import Triangulation, TrapezoidMapTriFinder
+
+    try:
+        finder = TrapezoidMapTriFinder(Triangulation(tri.points[:, 0], tri.points[:, 1],
+                                                     tri.simplices))
+        return np.asarray(finder(xy[:, 0], xy[:, 1]), np.int64)
+    except (RuntimeError, ValueError):
+        return tri.find_simplex(xy)
+
+
 def tin_densification(xyz: np.ndarray, cfg: TinConfig, *, fixed: np.ndarray | None = None,
                       drop_odd_seeds: bool = False) -> np.ndarray:
     """(N,) bool ground by progressive TIN densification of (N, 3) centred points.
+
+    Axelsson (2000): the lowest point per `cfg.cell_size` cell seeds a TIN; each round, the
+    points inside a facet that pass its distance and vertex-angle tests, the closest to its
+    plane of each facet, join the ground (a batch per round), and the TIN is rebuilt,
+    until no point joins or `cfg.max_iterations` rounds. Made better: virtual seeds round the box
+    (`_box_seeds`), odd seeds judged against their neighbours' plane (`_drop_odd_seeds`,
+    with drop_odd_seeds) and the vertex angles judged from ANGLE_MIN_REACH at least.
+    ISPRS mean total error / kappa 15.84 % / 0.607 -> 8.23 % / 0.762 (Type I 22.9 -> 8.8 %,
+    Type II 4.1 -> 8.0 %); a 17 degree slope 13 -> 96 % ground. ~10-15 s per ISPRS sample
+    (40 rounds, each a triangulation and a point location), 3 x faster than before
+    (`_locate`).
 
     fixed: (F, 3) extra ground points (the streaming context), part of the TIN, not output.
     """
@@ -344,32 +413,32 @@ def tin_densification(xyz: np.ndarray, cfg: TinConfig, *, fixed: np.ndarray | No
         seeds = seeds[_drop_odd_seeds(xyz[seeds])]
     ground[seeds] = True
     fixed = np.zeros((0, 3)) if fixed is None else fixed
+    if len(seeds):
+        fixed = np.concatenate([fixed, _box_seeds(xyz[:, :2], xyz[seeds], cfg.cell_size)])
+    cand = np.flatnonzero(~ground)
     for _ in range(cfg.max_iterations):
         g_xyz = np.concatenate([fixed, xyz[ground]])
-        if len(g_xyz) < 3:
+        if len(g_xyz) < 3 or len(cand) == 0:
             break
         try:
             tri = Delaunay(g_xyz[:, :2])
         except QhullError:
             break  # collinear or coincident ground: nothing more to densify
-        cand = np.flatnonzero(~ground)
-        if len(cand) == 0:
+        simplex = _locate(tri, xyz[cand, :2])
+        at = np.flatnonzero(simplex >= 0)  # into cand
+        ok, d = _facet_test(tri, g_xyz, xyz[cand[at]], simplex[at], cfg.max_distance,
+                            cfg.max_angle, cfg.min_edge)
+        at, facet, d = at[ok], simplex[at[ok]], d[ok]
+        if len(at) == 0:
             break
-        simplex = tri.find_simplex(xyz[cand, :2])
-        inside = simplex >= 0
-        cand, simplex = cand[inside], simplex[inside]
-        if len(cand) == 0:
-            break
-        ok, d = _facet_test(tri, g_xyz, xyz[cand], simplex, cfg.max_distance, cfg.max_angle,
-                            cfg.min_edge)
-        cand, simplex, d = cand[ok], simplex[ok], d[ok]
-        if len(cand) == 0:
-            break
-        # One point per facet and round: the closest to the facet's plane.
-        order = np.lexsort((d, simplex))
+        # One point per facet and round, the closest to the facet's plane: the rounds are
+        # the batches, and a facet's next point is judged on the facets it made.
+        order = np.lexsort((d, facet))
         first = np.ones(len(order), bool)
-        first[1:] = simplex[order[1:]] != simplex[order[:-1]]
-        ground[cand[order[first]]] = True
+        first[1:] = facet[order[1:]] != facet[order[:-1]]
+        joined = at[order[first]]
+        ground[cand[joined]] = True
+        cand = np.delete(cand, joined)
     return ground
 
 
