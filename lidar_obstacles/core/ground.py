@@ -398,9 +398,9 @@ def tin_densification(xyz: np.ndarray, cfg: TinConfig, *, fixed: np.ndarray | No
     (`_box_seeds`), odd seeds judged against their neighbours' plane (`_drop_odd_seeds`,
     with drop_odd_seeds) and the vertex angles judged from ANGLE_MIN_REACH at least.
     ISPRS mean total error / kappa 15.84 % / 0.607 -> 8.23 % / 0.762 (Type I 22.9 -> 8.8 %,
-    Type II 4.1 -> 8.0 %); a 17 degree slope 13 -> 96 % ground. ~10-15 s per ISPRS sample
-    (40 rounds, each a triangulation and a point location), 3 x faster than before
-    (`_locate`).
+    Type II 4.1 -> 8.0 %); a 17 degree slope 13 -> 96 % ground. 15-19 s of CPU per
+    ISPRS sample (40 rounds, each a triangulation and a point location; samp11 11 -> 19 s:
+    every point is judged now, where the seeds' hull left many out).
 
     fixed: (F, 3) extra ground points (the streaming context), part of the TIN, not output.
     """
