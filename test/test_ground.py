@@ -7,7 +7,7 @@ from scipy.spatial import Delaunay
 
 from lidar_obstacles.config import ObstacleDetectorConfig, replace
 from lidar_obstacles.core.context import GroundContext
-from lidar_obstacles.core.ground import (GroundSurface, HybridSettings, _dense_band,
+from lidar_obstacles.core.ground import (GroundSurface, HybridSettings, _dense_band, _locate,
                                          _ground_density, _Inpainter, _median_trend, _Opening,
                                          _slope,
                                          _steep_objects, _window_extreme, classify_ground,
@@ -421,7 +421,7 @@ def _bridge(rng):
     return ground[~under], np.column_stack([deck_xy, 100 + rng.normal(0, 0.03, 3000)])
 
 
-# The TIN takes ~10-20 s on these scenes (a Delaunay triangulation and a point location
+# The TIN takes ~5-10 s on these scenes (a Delaunay triangulation and a point location
 # per round, 40 rounds).
 SLOW_TIN = ["hybrid", pytest.param("tin", marks=pytest.mark.slow), "ransac"]
 
@@ -468,3 +468,26 @@ def test_each_filter_on_a_slope_a_step_and_a_roof(method):
     res = _run(np.concatenate([flat[~under], roof]), method)
     assert res.ground[:(~under).sum()].mean() > kept
     assert not res.ground[(~under).sum():].any()
+
+
+@pytest.mark.parametrize("lattice", [False, True])
+def test_locate_finds_the_facet_holding_each_point(lattice):
+    # Random points, or a survey's lattice (cocircular points, duplicates, points on
+    # edges); queries inside and outside the TIN.
+    rng = np.random.default_rng(9)
+    if lattice:
+        g = np.arange(0.0, 30.0, 1.0)
+        verts = np.column_stack([a.ravel() for a in np.meshgrid(g, g)])
+        verts = np.concatenate([verts, verts[:50]])  # duplicates, left out by Qhull
+        query = np.round(rng.uniform(-2, 31, (3000, 2)), 1)  # many on edges
+    else:
+        verts = rng.uniform(0, 30, (2000, 2))
+        query = rng.uniform(-2, 32, (3000, 2))
+    tri = Delaunay(verts)
+    got = _locate(tri, query)
+    outside = tri.find_simplex(query) < 0
+    assert np.array_equal(got < 0, outside)
+    t = tri.transform[got[~outside]]
+    bary = np.einsum("kij,kj->ki", t[:, :2], query[~outside] - t[:, 2])
+    bary = np.column_stack([bary, 1 - bary.sum(axis=1)])
+    assert (bary >= -1e-9).all()  # each point lies in (or on the edge of) its facet
