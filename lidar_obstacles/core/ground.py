@@ -420,7 +420,7 @@ def tin_densification(xyz: np.ndarray, cfg: TinConfig, *, fixed: np.ndarray | No
     until no point joins or `cfg.max_iterations` rounds. Made better: virtual seeds round the box
     (`_box_seeds`), odd seeds judged against their neighbours' plane (`_drop_odd_seeds`,
     with drop_odd_seeds) and the vertex angles judged from ANGLE_MIN_REACH at least.
-    ISPRS mean total error / kappa 15.84 % / 0.607 -> 8.23 % / 0.762 (Type I 22.9 -> 8.8 %,
+    ISPRS mean total error / kappa 15.84 % / 0.607 -> 8.20 % / 0.763 (Type I 22.9 -> 8.7 %,
     Type II 4.1 -> 8.0 %); a 17 degree slope 13 -> 96 % ground. ~4 s per ISPRS sample
     (the 15 in 58 s; samp11 11 -> 7.7 s of CPU), most of it Qhull's triangulation, one a
     round.
