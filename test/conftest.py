@@ -39,7 +39,8 @@ def interrupt_while_importing(args: list[str], heavy: Callable[[str], bool], del
     proc = subprocess.Popen([sys.executable, "-X", "importtime", *args], cwd=REPO,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     seen: list[str] = []
-    try:
+
+    def imported() -> None:
         for line in proc.stderr:  # "import time: self | cumulative | module"
             seen.append(line)
             if line.startswith("import time:") and heavy(line.rsplit("|", 1)[-1].strip()):
@@ -47,13 +48,24 @@ def interrupt_while_importing(args: list[str], heavy: Callable[[str], bool], del
         else:
             pytest.fail("it ended before its modules were imported:\n" + "".join(seen))
         time.sleep(delay)
+
+    _, rest = signal_when(proc, imported, sig)
+    return proc.returncode, "".join(seen) + rest
+
+
+def signal_when(proc: subprocess.Popen, ready: Callable[[], None], sig: int,
+                timeout: float = 120.0) -> tuple[str | None, str | None]:
+    """Call ready() (it waits for the moment, or fails the test), send proc `sig` and return
+    the rest of its (stdout, stderr). The process is killed and reaped whatever happens, so
+    a failing test leaves none behind."""
+    try:
+        ready()
         proc.send_signal(sig)
-        _, rest = proc.communicate(timeout=120)
+        return proc.communicate(timeout=timeout)
     finally:
         if proc.poll() is None:
             proc.kill()
-            proc.wait()
-    return proc.returncode, "".join(seen) + rest
+            proc.communicate()
 
 
 def signal_at_import(entry: str, module: str, sig: int = signal.SIGINT) -> str:

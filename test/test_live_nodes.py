@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import REPO
+from conftest import REPO, signal_when
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -216,16 +216,15 @@ def test_play_stopped_exits_130_or_143_and_says_what_it_published(sig, subscribe
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=(lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
                             if background else None)
-    try:
-        playing = ((lambda: len(got) > 0) if subscribed  # (else: waiting for subscribers)
-                   else (lambda: ros_node.count_publishers(f"{ns}/points") > 0))
+    playing = ((lambda: len(got) > 0) if subscribed  # (else: waiting for subscribers)
+               else (lambda: ros_node.count_publishers(f"{ns}/points") > 0))
+
+    def ready() -> None:
         assert _spin_until(ros_node, playing, 60)
-        proc.send_signal(sig)
-        out, err = proc.communicate(timeout=30)
+
+    try:
+        out, err = signal_when(proc, ready, sig, timeout=30)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
         if sub is not None:
             ros_node.destroy_subscription(sub)
     code, word = (130, "interrupted") if sig == signal.SIGINT else (143, "terminated")
