@@ -106,7 +106,8 @@ def bench_live_latency(seconds: float, with_dem_builder: bool = False,
 
     def start(name: str) -> subprocess.Popen:
         exe = Path(sys.executable).parent / name
-        cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", f"lidar_obstacles.ros.{name}"]
+        cmd = ([str(exe)] if exe.exists()
+               else [sys.executable, "-m", f"lidar_obstacles.scripts.{name}"])
         with open(Path(logs.name) / f"{name}.log", "w") as log:
             return subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
 

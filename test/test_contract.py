@@ -109,7 +109,7 @@ def test_a_running_node_offers_the_contracts_topics_and_services(contract, node)
     outputs.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"))  # every node
     ns = "/contract_test"
     exe = Path(sys.executable).parent / node
-    cmd = [str(exe)] if exe.is_file() else [sys.executable, "-m", f"lidar_obstacles.ros.{node}"]
+    cmd = [str(exe)] if exe.is_file() else [sys.executable, "-m", f"lidar_obstacles.scripts.{node}"]
     proc = subprocess.Popen(cmd + ["--ros-args", "-r", f"__ns:={ns}", *NODES[node]], cwd=REPO,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     rclpy.init()

@@ -276,7 +276,7 @@ def test_tune_improves_a_mistuned_start_and_the_yaml_loads_in_the_node(tmp_path)
     assert summary["validation"]["best_score"] > summary["validation"]["start_score"]
     assert set(summary["sensitivity"]) <= {"ground.method", "ransac.distance_threshold"}
     # The YAML loads in the live node (which exits on a bad parameter with status 2).
-    exe = [sys.executable, "-m", "lidar_obstacles.ros.obstacle_detector", "--ros-args",
+    exe = [sys.executable, "-m", "lidar_obstacles.scripts.obstacle_detector", "--ros-args",
            "--params-file", str(out)]
     proc = subprocess.Popen(exe, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)

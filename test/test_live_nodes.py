@@ -130,8 +130,8 @@ def test_nodes_process_a_played_flight(flight, ros_node, tmp_path):
             for key, msg_type, topic, qos in wanted]
     # The detector keeps every cloud (a live node keeps the newest one only, `input.depth: 1`,
     # and drops what it cannot keep up with; how many depends on the machine's load).
-    det = _start("lidar_obstacles.ros.obstacle_detector", "-p", "input.depth:=30")
-    dem = _start("lidar_obstacles.ros.dem_builder", "-p", "dem.publish_rate:=2.0",
+    det = _start("lidar_obstacles.scripts.obstacle_detector", "-p", "input.depth:=30")
+    dem = _start("lidar_obstacles.scripts.dem_builder", "-p", "dem.publish_rate:=2.0",
                  "-p", f"export.path:={tmp_path / 'live_dem.tif'}")
     try:
         # Wait until both nodes are up (their diagnostics arrive), then play.
@@ -277,7 +277,7 @@ def test_play_answers_ctrl_c_while_a_subscriber_does_not_acknowledge(tmp_path):
 
 
 def test_runtime_parameters_and_malformed_clouds(ros_node):
-    det = _start("lidar_obstacles.ros.obstacle_detector")
+    det = _start("lidar_obstacles.scripts.obstacle_detector")
     diag: list = []
     sub = ros_node.create_subscription(DiagnosticArray, "/diagnostics", diag.append, 10)
     try:
@@ -359,7 +359,7 @@ def test_a_signal_while_the_node_is_built_stops_it_cleanly_without_rclpy_handler
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "handlers: True" in proc.stdout and "Traceback" not in proc.stderr
     # and a crash says where each thread was
-    det = _start("lidar_obstacles.ros.obstacle_detector")
+    det = _start("lidar_obstacles.scripts.obstacle_detector")
     try:
         while "ready" not in (line := det.stdout.readline()):
             assert line, "the node ended before it was ready"
@@ -423,7 +423,7 @@ def test_a_second_signal_stops_a_node_busy_with_a_cloud_at_once_and_cleanly(seco
     (["--params-file", "/nonexistent.yaml"], "Couldn't parse params file"),
 ])
 def test_bad_parameter_at_start_exits_2(args, expected):
-    proc = _start("lidar_obstacles.ros.obstacle_detector", *args)
+    proc = _start("lidar_obstacles.scripts.obstacle_detector", *args)
     rc, log = (_stop(proc) if proc.wait(timeout=60) is None
                else (proc.returncode, proc.stdout.read()))
     assert rc == 2, log
@@ -436,7 +436,7 @@ def test_a_shared_params_file_with_the_other_nodes_parameters_is_fine(tmp_path):
     params = tmp_path / "both.yaml"
     params.write_text("/**:\n  ros__parameters:\n    dem.interpolation: tin\n"
                       "    obstacles.min_height: 0.5\n")
-    proc = _start("lidar_obstacles.ros.obstacle_detector", "--params-file", str(params))
+    proc = _start("lidar_obstacles.scripts.obstacle_detector", "--params-file", str(params))
     try:
         assert proc.wait(timeout=5) is None
     except subprocess.TimeoutExpired:
@@ -453,7 +453,7 @@ def test_the_shipped_params_file_reaches_a_namespaced_node(ros_node, tmp_path):
     assert "      size: 40.0  #" in text
     params = tmp_path / "od.yaml"
     params.write_text(text.replace("      size: 40.0  #", "      size: 33  #"))
-    proc = _start("lidar_obstacles.ros.obstacle_detector", "--params-file", str(params))
+    proc = _start("lidar_obstacles.scripts.obstacle_detector", "--params-file", str(params))
     try:
         node = f"{NS}/obstacle_detector"
         got = _call(ros_node, GetParameters, f"{node}/get_parameters",
@@ -489,7 +489,7 @@ def test_cloud_simplifier_node(ros_node):
                                        QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
     pub = ros_node.create_publisher(PointCloud2, f"{NS}/points",
                                     QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
-    node = _start("lidar_obstacles.ros.cloud_simplifier", "-p", "input.reliability:=reliable")
+    node = _start("lidar_obstacles.scripts.cloud_simplifier", "-p", "input.reliability:=reliable")
     try:
         assert _spin_until(ros_node, lambda: pub.get_subscription_count() > 0, 60)
 

@@ -7,3 +7,8 @@ from lidar_obstacles.scripts import start
 
 def main(args: list[str] | None = None) -> int:
     return start("dem_builder", args)
+
+
+# `python -m lidar_obstacles.scripts.dem_builder`: where the executable is not installed
+if __name__ == "__main__":
+    raise SystemExit(main())

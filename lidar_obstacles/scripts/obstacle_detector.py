@@ -7,3 +7,8 @@ from lidar_obstacles.scripts import start
 
 def main(args: list[str] | None = None) -> int:
     return start("obstacle_detector", args)
+
+
+# `python -m lidar_obstacles.scripts.obstacle_detector`: where the executable is not installed
+if __name__ == "__main__":
+    raise SystemExit(main())
