@@ -86,6 +86,20 @@ def test_fill_distance_is_inclusive():
     assert grid.interpolated.all(axis=0).tolist() == filled
 
 
+def test_fill_distance_zero_keeps_the_measured_cells_only():
+    """`dem.fill_distance` 0 (its range's low end): nothing is interpolated. build_dem
+    raised a TypeError (float slice bounds) here; the end-to-end benchmark uses it to find
+    the cells inside the data."""
+    xs = np.r_[0:3, 8:11] + 0.5
+    xy = np.stack(np.meshgrid(xs, np.arange(3) + 0.5), axis=-1).reshape(-1, 2)
+    pts = np.column_stack([xy, plane_at(xy)])
+    grid = build_dem(pts, cfg=_cfg(**{"dem.resolution": 1.0, "dem.fill_distance": 0.0}))
+    assert grid.shape == (3, 11)
+    assert np.isfinite(grid.elevation).all(axis=0).tolist() == [True] * 3 + [False] * 5 + [True] * 3
+    assert not grid.interpolated.any()
+    assert grid.count.sum() == len(pts)
+
+
 @pytest.mark.parametrize("method", ["tin", "idw", "kriging", "rbf", "rbfnn"])
 def test_degenerate_ground_gives_reason_not_crash(method):
     cfg = _cfg(**{"dem.interpolation": method})

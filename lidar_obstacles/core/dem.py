@@ -518,7 +518,8 @@ def build_dem(ground_xyz: np.ndarray, *, cfg: DemBuilderConfig,
     if rows * cols > cfg.dem.max_cells:
         raise ConfigError(f"DEM of {rows:.6g} x {cols:.6g} cells exceeds dem.max_cells = "
                           f"{cfg.dem.max_cells}; raise it or coarsen dem.resolution")
-    cells = _Cells(lo.astype(np.int64), (int(rows), int(cols)), res)
+    rows, cols = int(rows), int(cols)  # (region bounds below: slices take integers only)
+    cells = _Cells(lo.astype(np.int64), (rows, cols), res)
     if len(xyz):
         cells.add(xyz)
     reason = _flat_reason(xyz)
