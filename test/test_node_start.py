@@ -59,18 +59,3 @@ def test_a_stop_signal_inside_an_import_a_c_extension_makes_stops_the_node_clean
                           cwd=REPO, capture_output=True, text=True, timeout=120)
     word = "interrupted" if sig == signal.SIGINT else "terminated"
     assert (proc.returncode, proc.stderr) == (0, f"{name}: {word}\n")
-
-
-@pytest.mark.parametrize("name", sorted(NODES))
-def test_a_node_run_as_a_module_where_no_executable_is_installed_stops_cleanly_too(name):
-    """`python -m lidar_obstacles.scripts.<node>` (what the tests and the benchmarks run in
-    a checkout without the executables) goes through the same start: a Ctrl-C while it
-    imports rclpy stops it with status 0 and no traceback. Run as
-    `-m lidar_obstacles.ros.<node>`, the node module's own imports came first."""
-    assert NODES[name] == f"lidar_obstacles.scripts.{name}"
-    code, err = interrupt_while_importing(["-m", NODES[name], "--ros-args", "-r", "__ns:=/start"],
-                                          _heavy, 0.1)
-    assert code == 0 and "Traceback" not in err, err[-3000:]
-    said = [x for x in err.splitlines()
-            if not x.startswith("import time:") and not re.match(r"\[(INFO|WARN)\]", x)]
-    assert said in ([], [f"{name}: interrupted"]), said
