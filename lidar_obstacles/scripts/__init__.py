@@ -12,8 +12,10 @@ traceback.
 from __future__ import annotations
 
 import importlib
+import os
 import signal
 import sys
+from typing import NoReturn
 
 
 _RECEIVED: list[int] = []  # the stop signals received while the node was imported
@@ -50,3 +52,21 @@ def start(name: str, args: list[str] | None) -> int:
         word = "terminated" if _RECEIVED[-1] == signal.SIGTERM else "interrupted"
         print(f"{name}: {word}", file=sys.stderr)
         return 0
+
+
+def exit_as_module(name: str) -> NoReturn:
+    """`python -m lidar_obstacles.scripts.<name>` (where the executables are not installed):
+    run node `name` with the process's command line and exit with its status.
+
+    Run with -m, Python ends its process by SIGINT (status -2), however main returned, when
+    a KeyboardInterrupt ever left code that an extension module ran through the C API
+    (PyRun_String) during an import: a Ctrl-C that lands there is caught by :func:`start`
+    but still noted by the interpreter, which then kills itself at exit. A console script
+    or ``python -c`` exits at once on SystemExit, before that check; here, a stop received
+    while the node was imported exits the same way, its output flushed."""
+    status = start(name, None)
+    if _RECEIVED:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+    raise SystemExit(status)

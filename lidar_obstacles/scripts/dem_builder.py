@@ -2,7 +2,7 @@
 before main (see lidar_obstacles.scripts)."""
 from __future__ import annotations
 
-from lidar_obstacles.scripts import start
+from lidar_obstacles.scripts import exit_as_module, start
 
 
 def main(args: list[str] | None = None) -> int:
@@ -11,4 +11,4 @@ def main(args: list[str] | None = None) -> int:
 
 # `python -m lidar_obstacles.scripts.dem_builder`: where the executable is not installed
 if __name__ == "__main__":
-    raise SystemExit(main())
+    exit_as_module("dem_builder")
