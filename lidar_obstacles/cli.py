@@ -361,5 +361,7 @@ def _main(argv: list[str] | None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    raise SystemExit(main())
+if __name__ == "__main__":  # `python -m lidar_obstacles.cli`
+    from lidar_obstacles.scripts import exit_process
+
+    exit_process(main(), stopped=bool(_RECEIVED))

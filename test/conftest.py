@@ -68,6 +68,21 @@ def signal_when(proc: subprocess.Popen, ready: Callable[[], None], sig: int,
             proc.communicate()
 
 
+def stop_inside_exec(module: str, tmp_path: Path) -> dict[str, str]:
+    """The environment of a process that sends itself SIGINT inside code exec() runs from
+    a string, when `module` is first imported (a `sitecustomize` in tmp_path): as a Ctrl-C
+    lands in the methods dataclasses and typing make so while modules are imported."""
+    (tmp_path / "sitecustomize.py").write_text(
+        "import os, signal, sys\n"
+        "class StopInsideExec:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        f"        if name == {module!r}:\n"
+        "            sys.meta_path.remove(self)\n"
+        "            exec('os.kill(os.getpid(), signal.SIGINT)', {'os': os, 'signal': signal})\n"
+        "sys.meta_path.insert(0, StopInsideExec())\n")
+    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(REPO)]))
+
+
 def signal_at_import(entry: str, module: str, sig: int = signal.SIGINT) -> str:
     """A script that runs ``main()`` of `entry` (a module, as a console script does) and
     sends itself `sig` when `module` is first imported: the signal comes inside that

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPO, interrupt_while_importing, signal_at_import
+from conftest import REPO, interrupt_while_importing, signal_at_import, stop_inside_exec
 from lidar_obstacles.cli import build_parser, main
 
 
@@ -161,3 +161,15 @@ def test_a_signal_inside_an_import_a_c_extension_makes_is_one_line(sig, code, wo
                            "simulate", str(tmp_path / "bag"), "--duration", "600"],
                           cwd=REPO, capture_output=True, text=True, timeout=120)
     assert (proc.returncode, proc.stderr) == (code, f"lidar-obstacles: {word}\n")
+
+
+def test_run_with_python_m_a_ctrl_c_inside_an_exec_still_exits_130(tmp_path):
+    """`python -m lidar_obstacles.cli` (as the tests run it): a Ctrl-C raised inside code
+    that exec() runs from a string, as dataclasses make their methods while modules are
+    imported, was noted by Python as unhandled, and a process run with -m then killed
+    itself by SIGINT at exit: status -2 after its line, not 130."""
+    proc = subprocess.run([sys.executable, "-m", "lidar_obstacles.cli", "simulate",
+                           str(tmp_path / "bag"), "--duration", "600"],
+                          cwd=REPO, env=stop_inside_exec("numpy", tmp_path), capture_output=True,
+                          text=True, timeout=120)
+    assert (proc.returncode, proc.stderr) == (130, "lidar-obstacles: interrupted\n")

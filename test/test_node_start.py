@@ -2,7 +2,6 @@
 modules (rclpy, the messages, numpy: ~0.5 s) stops it as one does later, when it runs."""
 from __future__ import annotations
 
-import os
 import re
 import signal
 import subprocess
@@ -10,7 +9,7 @@ import sys
 
 import pytest
 
-from conftest import REPO, interrupt_while_importing, signal_at_import
+from conftest import REPO, interrupt_while_importing, signal_at_import, stop_inside_exec
 
 # The node executables as setup.py installs them: name -> module of main
 NODES = dict(re.findall(r'"(\w+) = (lidar_obstacles\.[\w.]+):main"',
@@ -62,18 +61,6 @@ def test_a_stop_signal_inside_an_import_a_c_extension_makes_stops_the_node_clean
     assert (proc.returncode, proc.stderr) == (0, f"{name}: {word}\n")
 
 
-# A stop that lands inside exec() of a string, as the node's imports run it: dataclasses and
-# typing make their methods so (the first import of `module` stands for one of those).
-_STOP_INSIDE_EXEC = """import os, signal, sys
-class StopInsideExec:
-    def find_spec(self, name, path=None, target=None):
-        if name == {module!r}:
-            sys.meta_path.remove(self)
-            exec("os.kill(os.getpid(), signal.SIGINT)", {{"os": os, "signal": signal}})
-sys.meta_path.insert(0, StopInsideExec())
-"""
-
-
 @pytest.mark.parametrize("name", sorted(NODES))
 def test_a_node_run_as_a_module_stops_cleanly_when_the_stop_lands_inside_an_exec(name, tmp_path):
     """`python -m lidar_obstacles.scripts.<node>` (what the tests and the benchmarks run in a
@@ -81,10 +68,9 @@ def test_a_node_run_as_a_module_stops_cleanly_when_the_stop_lands_inside_an_exec
     string is noted by the interpreter as unhandled, even when caught later, and a process
     started with -m then kills itself by SIGINT at exit. The node said `interrupted` and
     still ended with status -2 (one CI run in session 21); now it exits 0."""
-    (tmp_path / "sitecustomize.py").write_text(_STOP_INSIDE_EXEC.format(module="rclpy"))
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(REPO)]))
     proc = subprocess.run([sys.executable, "-m", NODES[name], "--ros-args", "-r", "__ns:=/start"],
-                          cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+                          cwd=REPO, env=stop_inside_exec("rclpy", tmp_path), capture_output=True,
+                          text=True, timeout=120)
     assert (proc.returncode, proc.stderr) == (0, f"{name}: interrupted\n")
 
 

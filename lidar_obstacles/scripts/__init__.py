@@ -54,19 +54,28 @@ def start(name: str, args: list[str] | None) -> int:
         return 0
 
 
-def exit_as_module(name: str) -> NoReturn:
-    """`python -m lidar_obstacles.scripts.<name>` (where the executables are not installed):
-    run node `name` with the process's command line and exit with its status.
+def exit_process(status: int, *, stopped: bool) -> NoReturn:
+    """End a program run with ``python -m`` with `status`: at once, its output flushed, when
+    it was `stopped` by a signal, else as usual.
 
-    Run with -m, Python ends its process by SIGINT (status -2), however main returned, when
-    a KeyboardInterrupt ever left code that an extension module ran through the C API
-    (PyRun_String) during an import: a Ctrl-C that lands there is caught by :func:`start`
-    but still noted by the interpreter, which then kills itself at exit. A console script
-    or ``python -c`` exits at once on SystemExit, before that check; here, a stop received
-    while the node was imported exits the same way, its output flushed."""
-    status = start(name, None)
-    if _RECEIVED:
-        sys.stdout.flush()
-        sys.stderr.flush()
+    Python ends a process run with -m by SIGINT (status -2), whatever status it asked
+    for, when a KeyboardInterrupt ever left code that exec() ran from a string, even one
+    caught later: dataclasses and typing make their methods so while modules are imported,
+    and a Ctrl-C landing there is noted as unhandled and acted on at exit. A console
+    script or ``python -c`` exits on SystemExit before that check. Everything the program
+    has to undo on a stop is undone by then (its own ``finally`` blocks)."""
+    if stopped:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):  # a reader gone, a stream closed: nothing to lose
+                pass
         os._exit(status)
     raise SystemExit(status)
+
+
+def exit_as_module(name: str) -> NoReturn:
+    """`python -m lidar_obstacles.scripts.<name>` (where the executables are not installed):
+    run node `name` with the process's command line and exit with its status."""
+    status = start(name, None)
+    exit_process(status, stopped=bool(_RECEIVED))
