@@ -33,8 +33,9 @@
    cloud (any class): cells outside the surveyed footprint (the corridor files' bounding
    box is mostly empty) would compare two extrapolations, not the ground filters.
 
-Usage: .venv/bin/python benchmarks/bench_dem.py [--quick]
-Writes benchmarks/results/dem.json and dem_*.png (hillshades, elbow curve).
+Usage: .venv/bin/python benchmarks/bench_dem.py [--quick | --smoke --out DIR]
+Writes benchmarks/results/dem.json and dem_*.png (hillshades, elbow curve), to --out DIR
+if given. PyKrige and pysmrf are skipped when not installed.
 """
 from __future__ import annotations
 
@@ -59,10 +60,9 @@ from lidar_obstacles.core import kmeans as km_mod  # noqa: E402
 from lidar_obstacles.core.kmeans import elbow_kmeans, standardise  # noqa: E402
 from lidar_obstacles.io.geotiff import write_hillshade_png  # noqa: E402
 from lidar_obstacles.io.las import read_las  # noqa: E402
-from common import quick_args, table  # noqa: E402 (benchmarks/ is on the path)
+from common import bench_args, installed, per_mode, table  # noqa: E402 (benchmarks/ is on the path)
 
 DATA = REPO.parent / "shared" / "data"
-OUT = REPO / "benchmarks" / "results"
 ISPRS = ["11", "12", "21", "22", "23", "24", "31", "41", "42", "51", "52", "53", "54", "61",
          "71"]
 
@@ -95,9 +95,9 @@ def timed(fn):
 # --------------------------------------------------------------------------- 1 + 2
 
 
-def protocol(files: list[str], max_ground: int, cfg: DemBuilderConfig) -> tuple[list, list]:
+def protocol(files: list[str], max_ground: int, cfg: DemBuilderConfig,
+             with_pykrige: bool) -> tuple[list, list]:
     """Rows per file x keep x method, and the default-interpolator checks."""
-    from pykrige.ok import OrdinaryKriging
     from scipy.interpolate import RBFInterpolator
 
     rows, checks = [], []
@@ -144,12 +144,15 @@ def protocol(files: list[str], max_ground: int, cfg: DemBuilderConfig) -> tuple[
                 np.random.default_rng(0).choice(len(merged), 5000, replace=False)]
 
             def pykrige():
+                from pykrige.ok import OrdinaryKriging
+
                 ok = OrdinaryKriging(sub[:, 0], sub[:, 1], sub[:, 2], variogram_model="spherical")
                 z, _ = ok.execute("points", check[:, 0], check[:, 1], n_closest_points=32,
                                   backend="loop")
                 return np.asarray(z)
 
-            runs["pykrige32"] = timed(pykrige)
+            if with_pykrige:
+                runs["pykrige32"] = timed(pykrige)
             for name, (pred, sec) in runs.items():
                 rmse, r2, n = accuracy(pred, check[:, 2])
                 row = dict(file=rel, keep=keep, n_ground=len(xyz), n_train=len(train),
@@ -206,15 +209,17 @@ def default_check(rel: str, keep: float, default: str,
 # --------------------------------------------------------------------------- 3
 
 
-def speed(cfg: DemBuilderConfig, repeat: int) -> dict:
-    from pykrige.ok import OrdinaryKriging
+def speed(cfg: DemBuilderConfig, repeat: int, with_pykrige: bool, n: int = 10000,
+          side: int = 200, n_train: int = 7000, all_units: tuple[int, ...] = (200, 1000)) -> dict:
+    """Kriging and rbf from `n` ground points into a `side` x `side` grid; rbfnn trained on
+    `n_train` points, with the defaults and made to add each of `all_units` units."""
     from scipy.interpolate import RBFInterpolator
 
     cloud, gmask, _ = load("ahn4/ahn_2496_9727.laz")
     g = cloud.xyz[gmask]
-    pts = g[np.random.default_rng(1).choice(len(g), 10000, replace=False)]
+    pts = g[np.random.default_rng(1).choice(len(g), n, replace=False)]
     lo, hi = pts[:, :2].min(axis=0), pts[:, :2].max(axis=0)
-    gx, gy = np.linspace(lo[0], hi[0], 200), np.linspace(lo[1], hi[1], 200)
+    gx, gy = np.linspace(lo[0], hi[0], side), np.linspace(lo[1], hi[1], side)
     grid = np.stack(np.meshgrid(gx, gy), axis=-1).reshape(-1, 2)
 
     def best(fn):
@@ -229,11 +234,14 @@ def speed(cfg: DemBuilderConfig, repeat: int) -> dict:
         "scipy_rbf64": best(lambda: RBFInterpolator(pts[:, :2], pts[:, 2],
                                                     neighbors=64)(grid)),
     }
-    ok = OrdinaryKriging(pts[:, 0], pts[:, 1], pts[:, 2], variogram_model="spherical")
-    res["pykrige32_execute"] = timed(lambda: ok.execute("grid", gx, gy, n_closest_points=32,
-                                                        backend="loop"))[1]
-    res["pykrige32_total"] = res["pykrige32_execute"] + timed(lambda: OrdinaryKriging(
-        pts[:, 0], pts[:, 1], pts[:, 2], variogram_model="spherical"))[1]
+    if with_pykrige:
+        from pykrige.ok import OrdinaryKriging
+
+        ok = OrdinaryKriging(pts[:, 0], pts[:, 1], pts[:, 2], variogram_model="spherical")
+        res["pykrige32_execute"] = timed(lambda: ok.execute("grid", gx, gy, n_closest_points=32,
+                                                            backend="loop"))[1]
+        res["pykrige32_total"] = res["pykrige32_execute"] + timed(lambda: OrdinaryKriging(
+            pts[:, 0], pts[:, 1], pts[:, 2], variogram_model="spherical"))[1]
     # rbfnn on 7 000 points. AHN4 ground varies less than the paper's goal (0.02 m^2), so
     # the defaults add no unit there; the hilly ISPRS samp11 (z std 29 m) makes the
     # network grow, and an unreachable goal makes it add every unit it may.
@@ -242,15 +250,16 @@ def speed(cfg: DemBuilderConfig, repeat: int) -> dict:
     for label, src, goal, units in (("ahn4_defaults", g, cfg.rbfnn.goal, cfg.rbfnn.max_neurons),
                                     ("samp11_defaults", hills, cfg.rbfnn.goal,
                                      cfg.rbfnn.max_neurons),
-                                    ("samp11_all_200_units", hills, 1e-8, 200),
-                                    ("samp11_all_1000_units", hills, 1e-8, 1000)):
-        train = src[np.random.default_rng(2).choice(len(src), 7000, replace=False)]
+                                    *((f"samp11_all_{u}_units", hills, 1e-8, u)
+                                      for u in all_units)):
+        train = src[np.random.default_rng(2).choice(len(src), n_train, replace=False)]
         net, sec = timed(lambda: train_rbfnn(train[:, :2], train[:, 2], goal=goal,
                                              spread=cfg.rbfnn.spread, max_neurons=units))
-        res[f"rbfnn_7000_{label}_s"] = sec
-        res[f"rbfnn_7000_{label}_neurons"] = net.neurons
-        res[f"rbfnn_7000_{label}_rmse_m"] = float(np.sqrt(net.mse))
-    res["kriging_vs_pykrige"] = res["pykrige32_total"] / res["kriging"]
+        res[f"rbfnn_{n_train}_{label}_s"] = sec
+        res[f"rbfnn_{n_train}_{label}_neurons"] = net.neurons
+        res[f"rbfnn_{n_train}_{label}_rmse_m"] = float(np.sqrt(net.mse))
+    if with_pykrige:
+        res["kriging_vs_pykrige"] = res["pykrige32_total"] / res["kriging"]
     res["rbf_vs_scipy"] = res["scipy_rbf64"] / res["rbf"]
     return res
 
@@ -258,7 +267,7 @@ def speed(cfg: DemBuilderConfig, repeat: int) -> dict:
 # --------------------------------------------------------------------------- 4
 
 
-def kmeans_speed(n: int, cfg: KmeansConfig, anchor: bool) -> dict:
+def kmeans_speed(n: int, cfg: KmeansConfig, anchor: bool, out: Path) -> dict:
     from sklearn.cluster import KMeans
 
     cloud, _, inten = load("ahn4/ahn_2496_9727.laz")
@@ -292,7 +301,7 @@ def kmeans_speed(n: int, cfg: KmeansConfig, anchor: bool) -> dict:
                    sse_ratio_vs_sklearn=[a / b if b else 1.0 for a, b in zip(elbow.sse, sse)])
     from lidar_obstacles.report import elbow_png
 
-    elbow_png(range(1, len(elbow.sse) + 1), elbow.sse, elbow.k, OUT / "dem_elbow.png",
+    elbow_png(range(1, len(elbow.sse) + 1), elbow.sse, elbow.k, out / "dem_elbow.png",
               title="AHN4 intensity elbow")
     return res
 
@@ -331,10 +340,11 @@ def rolling(rel: str, cfg: DemBuilderConfig, n_msgs: int) -> list[dict]:
     return rows
 
 
-def rolling_flight(cfg: DemBuilderConfig, seconds: float) -> list[dict]:
+def rolling_flight(cfg: DemBuilderConfig, seconds: float, every: int = 50) -> list[dict]:
     """RollingDem along a simulated flight (50 000-point clouds at 10 Hz, 8 m/s, so the
     200 m window scrolls): update p50/p95 per method from the simulator's ground labels,
-    and memory: the DEM's own arrays and the process's resident set, sampled along."""
+    and memory: the DEM's own arrays and the process's resident set, sampled every
+    `every` messages."""
     import resource
     import tracemalloc
 
@@ -352,7 +362,7 @@ def rolling_flight(cfg: DemBuilderConfig, seconds: float) -> list[dict]:
         for m, dem in dems.items():
             times[m].append(timed(lambda: dem.update(ground, frame.position[:2],
                                                      frame.stamp))[1])
-        if i % 50 == 0:
+        if i % every == 0:
             traced.append(tracemalloc.get_traced_memory()[0] / 2**20)
             rss.append(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
     tracemalloc.stop()
@@ -392,12 +402,16 @@ def detector_dem_ground(xyz: np.ndarray, cfg: DemBuilderConfig) -> np.ndarray:
     return bare_earth_of(xyz, res.ground, res.height_above_ground, cfg.dem)
 
 
-def end_to_end(files: list[str], cfg: DemBuilderConfig, png: bool) -> list[dict]:
-
+def end_to_end(files: list[str], cfg: DemBuilderConfig, png: Path | None, with_pysmrf: bool,
+               max_points: int | None = None) -> list[dict]:
+    """Rows per file and ground source; hillshades into folder `png`; files cut to the disc
+    of `max_points` points round their middle."""
     rows = []
     for rel in files:
         cloud, gmask, _ = load(rel)
         xyz = cloud.xyz
+        if max_points:
+            xyz, gmask = crop(xyz, max_points, gmask)
         lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
         bounds = (lo[0], lo[1], hi[0], hi[1])
         ref = build_dem(xyz[gmask], cfg=cfg, bounds=bounds)
@@ -407,11 +421,10 @@ def end_to_end(files: list[str], cfg: DemBuilderConfig, png: bool) -> list[dict]
         cells = inside & np.isfinite(ref.elevation)
         png_here = png and not rel.startswith("isprs")  # pictures of the AHN files only
         if png_here:
-            write_hillshade_png(OUT / f"dem_{Path(rel).stem}_reference.png", ref)
-        sources = {
-            "detector": lambda: detector_dem_ground(xyz, cfg),
-            "pysmrf": lambda: smrf_ground(xyz),
-        }
+            write_hillshade_png(png / f"dem_{Path(rel).stem}_reference.png", ref)
+        sources = {"detector": lambda: detector_dem_ground(xyz, cfg)}
+        if with_pysmrf:
+            sources["pysmrf"] = lambda: smrf_ground(xyz)
         for source, fn in sources.items():
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
@@ -433,19 +446,21 @@ def end_to_end(files: list[str], cfg: DemBuilderConfig, png: bool) -> list[dict]
             print(f"  e2e {rel} {source}: rmse {rows[-1]['rmse_m']:.3f} ({sec:.1f} s)",
                   file=sys.stderr, flush=True)
             if png_here:
-                write_hillshade_png(OUT / f"dem_{Path(rel).stem}_{source}.png", dem)
+                write_hillshade_png(png / f"dem_{Path(rel).stem}_{source}.png", dem)
     return rows
 
 
 def e2e_verdict(rows: list[dict]) -> list[dict]:
-    """Per file: detector DEM RMSE <= 0.15 m (AHN files) and <= pysmrf's."""
+    """Per file: detector DEM RMSE <= 0.15 m (AHN files) and <= pysmrf's (if it ran)."""
     out = []
     for rel in dict.fromkeys(r["file"] for r in rows):
         by = {r["source"]: r for r in rows if r["file"] == rel}
-        det, smrf = by["detector"]["rmse_m"], by["pysmrf"]["rmse_m"]
-        out.append(dict(file=rel, detector_rmse_m=det, pysmrf_rmse_m=smrf,
-                        le_015=(det <= 0.15) if not rel.startswith("isprs") else "n/a",
-                        le_pysmrf=bool(det <= smrf)))
+        det = by["detector"]["rmse_m"]
+        out.append(dict(file=rel, detector_rmse_m=det,
+                        le_015=(det <= 0.15) if not rel.startswith("isprs") else "n/a"))
+        if "pysmrf" in by:
+            smrf = by["pysmrf"]["rmse_m"]
+            out[-1].update(pysmrf_rmse_m=smrf, le_pysmrf=bool(det <= smrf))
     return out
 
 
@@ -453,25 +468,32 @@ def e2e_verdict(rows: list[dict]) -> list[dict]:
 
 
 def main() -> int:
-    args = quick_args(__doc__, "fewer files and repeats")
-    OUT.mkdir(parents=True, exist_ok=True)
+    args = bench_args(__doc__, "fewer files and repeats",
+                      "crops of AHN4 and the smallest ISPRS sample, small grids, 2 messages")
     cfg = DemBuilderConfig()
     quick = args.quick
+    with_pykrige = installed("pykrige", "PyKrige")
+    with_pysmrf = installed("pysmrf", "pysmrf")
     all_files = (["ahn-corridor/07CZ2_14.laz", "ahn-corridor/12AN2_20.laz",
                   "ahn4/ahn_2496_9727.laz"] + [f"isprs/samp{s}-utm.laz" for s in ISPRS])
-    files = ["ahn4/ahn_2496_9727.laz", "isprs/samp52-utm.laz"] if quick else all_files
+    # smoke: AHN4 has the real intensity (rbfnn+I) and the hillshades, ISPRS neither
+    smoke_files = ["ahn4/ahn_2496_9727.laz", "isprs/samp24-utm.laz"]
+    files = per_mode(args, all_files, ["ahn4/ahn_2496_9727.laz", "isprs/samp52-utm.laz"],
+                     smoke_files)
     print("protocol...", file=sys.stderr, flush=True)
-    proto, checks = protocol(files, 12000 if quick else 50000, cfg)
+    proto, checks = protocol(files, per_mode(args, 50000, 12000, 2000), cfg, with_pykrige)
     print("speed...", file=sys.stderr, flush=True)
-    spd = speed(cfg, 1 if quick else 3)
+    spd = speed(cfg, per_mode(args, 3, 1, 1), with_pykrige,
+                **per_mode(args, {}, {}, dict(n=2000, side=50, n_train=1000, all_units=(20, 50))))
     print("kmeans...", file=sys.stderr, flush=True)
-    km = kmeans_speed(30000 if quick else 100000, cfg.kmeans, anchor=True)
+    km = kmeans_speed(per_mode(args, 100000, 30000, 2000), cfg.kmeans, anchor=True, out=args.out)
     print("rolling...", file=sys.stderr, flush=True)
-    roll = rolling("ahn-corridor/12AN2_20.laz", cfg, 8 if quick else 100)
-    roll += rolling_flight(cfg, 10.0 if quick else 90.0)
+    roll = rolling("ahn-corridor/12AN2_20.laz", cfg, per_mode(args, 100, 8, 2))
+    roll += rolling_flight(cfg, per_mode(args, 90.0, 10.0, 1.0), every=per_mode(args, 50, 50, 2))
     print("end to end...", file=sys.stderr, flush=True)
-    e2e = end_to_end(["ahn4/ahn_2496_9727.laz", "isprs/samp11-utm.laz"] if quick else all_files,
-                     cfg, png=True)
+    e2e = end_to_end(per_mode(args, all_files, ["ahn4/ahn_2496_9727.laz",
+                                                "isprs/samp11-utm.laz"], smoke_files),
+                     cfg, args.out, with_pysmrf, max_points=per_mode(args, None, None, 5000))
     verdict = e2e_verdict(e2e)
 
     # mean over ISPRS samples per method and keep, for a compact line
@@ -486,7 +508,7 @@ def main() -> int:
                                        r2=float(np.mean([r["r2"] for r in sel])),
                                        seconds=float(np.mean([r["seconds"] for r in sel]))))
     default = cfg.dem.interpolation
-    print(f"# DEM builder ({'quick' if quick else 'full'}, {platform.node()})\n")
+    print(f"# DEM builder ({args.mode}, {platform.node()})\n")
     print("## Paper protocol: 100 check points (rmse, r2, seconds) and held-out ground "
           "points (rmse_held_out, up to 5 000), thinned to 20 % / 80 %\n")
     print(table([r for r in proto if r["method"] in METHODS or not r["file"].startswith("isprs")],
@@ -524,8 +546,8 @@ def main() -> int:
     result = dict(quick=quick, machine=platform.node(), protocol=proto, default_check=checks,
                   isprs_mean=isprs_mean, speed=spd, kmeans=km, rolling=roll, end_to_end=e2e,
                   end_to_end_verdict=verdict)
-    (OUT / "dem.json").write_text(json.dumps(result, indent=2) + "\n")
-    print(f"\nwrote {OUT / 'dem.json'}")
+    (args.out / "dem.json").write_text(json.dumps(result, indent=2) + "\n")
+    print(f"\nwrote {args.out / 'dem.json'}")
     return 0
 
 

@@ -18,12 +18,11 @@ edges, speed and feature share on real data, faithful against fast, with an anch
     ms per 10 000 points; the paper's sculpture in kind: 48 238 -> 6 855 points
     (14.21 %) in 10 s (2 070 ms per 10 000 points).
 
-Usage: .venv/bin/python benchmarks/bench_features.py [--quick]
-Writes benchmarks/results/features.json and prints Markdown tables.
+Usage: .venv/bin/python benchmarks/bench_features.py [--quick | --smoke --out DIR]
+Writes benchmarks/results/features.json (to --out DIR if given) and prints Markdown tables.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import sys
@@ -40,9 +39,9 @@ sys.path.insert(0, str(REPO))
 from lidar_obstacles.config import FeaturesConfig  # noqa: E402
 from lidar_obstacles.core.features import gaussian_map_features  # noqa: E402
 from lidar_obstacles.io.las import read_las  # noqa: E402
+from common import bench_args, per_mode  # noqa: E402 (benchmarks/ is on the path)
 
 DATA = REPO.parent / "shared" / "data"
-OUT = REPO / "benchmarks" / "results"
 DENSITY = 16.0  # points / m^2 on surfaces
 SPACING = 1.0 / np.sqrt(DENSITY)  # m
 PRECISION_BAND = 2.5 * SPACING  # m
@@ -199,14 +198,17 @@ def scores(feature: np.ndarray, dist: np.ndarray) -> tuple[float, float]:
 # --------------------------------------------------------------------------- (a)
 
 
-def synthetic(noises: list[float]) -> list[dict]:
-    shapes = {"box": box, "gable 20 deg": lambda r: gable(r, 20.0),
-              "gable 45 deg": lambda r: gable(r, 45.0), "tower": tower, "wire": wire,
-              "houses + crowns": scene}
+SHAPES = {"box": box, "gable 20 deg": lambda r: gable(r, 20.0),
+          "gable 45 deg": lambda r: gable(r, 45.0), "tower": tower, "wire": wire,
+          "houses + crowns": scene}
+
+
+def synthetic(noises: list[float], names: list[str]) -> list[dict]:
     base = FeaturesConfig()
     rows = []
     for noise in noises:
-        for name, make in shapes.items():
+        for name in names:
+            make = SHAPES[name]
             rng = np.random.default_rng(7)
             xyz, edges = make(rng)
             if name not in ("tower", "wire"):
@@ -236,7 +238,7 @@ def synthetic(noises: list[float]) -> list[dict]:
 # --------------------------------------------------------------------------- (b)
 
 
-def real(quick: bool) -> list[dict]:
+def real(limit: int | None) -> list[dict]:
     sets = {}
     path = DATA / "ahn4" / "ahn_2496_9727.laz"
     if path.is_file():
@@ -252,9 +254,9 @@ def real(quick: bool) -> list[dict]:
     rows = []
     base = FeaturesConfig()
     for name, xyz in sets.items():
-        if quick and len(xyz) > 10000:  # the 10 000 points nearest the middle
+        if limit and len(xyz) > limit:  # the `limit` points nearest the middle
             mid = np.median(xyz[:, :2], axis=0)
-            xyz = xyz[np.argsort(np.hypot(*(xyz[:, :2] - mid).T))[:10000]]
+            xyz = xyz[np.argsort(np.hypot(*(xyz[:, :2] - mid).T))[:limit]]
         found = {}
         for method in ("faithful", "fast"):
             feature, sec = run(xyz, replace(base, method=method))
@@ -275,11 +277,11 @@ def real(quick: bool) -> list[dict]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--quick", action="store_true", help="one noise level, 10k real points")
-    args = ap.parse_args()
-    noises = [0.02] if args.quick else [0.0, 0.02, 0.05]
-    syn = synthetic(noises)
+    args = bench_args(__doc__, "one noise level, 10k real points",
+                      "one noise level, three shapes, 2k real points")
+    noises = per_mode(args, [0.0, 0.02, 0.05], [0.02], [0.02])
+    # smoke: a noisy surface shape and the two line shapes, which are left without noise
+    syn = synthetic(noises, per_mode(args, list(SHAPES), list(SHAPES), ["box", "tower", "wire"]))
     print("## (a) synthetic shapes with known edges\n")
     print(f"precision within {PRECISION_BAND:.2f} m of a true edge, recall of points within "
           f"{RECALL_BAND:.2f} m; {DENSITY:g} pts/m^2\n")
@@ -289,7 +291,7 @@ def main() -> None:
         print(f"| {r['shape']} | {r['noise_m']:.2f} | {r['points']} | {r['method']} | "
               f"{r['share']:.3f} | {r['precision']:.3f} | {r['recall']:.3f} | "
               f"{r['seconds']:.2f} | {r['agree_fast_faithful']:.3f} |")
-    rl = real(args.quick)
+    rl = real(per_mode(args, None, 10000, 2000))
     print("\n## (b) real data\n")
     print("| data | points | method | feature points | share | s | ms / 10k pts | agree |")
     print("|---|---|---|---|---|---|---|---|")
@@ -297,11 +299,10 @@ def main() -> None:
         print(f"| {r['data']} | {r['points']} | {r['method']} | {r['feature_points']} | "
               f"{r['share']:.4f} | {r['seconds']:.2f} | {r['ms_per_10k']:.0f} | "
               f"{r['agree_fast_faithful']:.3f} |")
-    OUT.mkdir(parents=True, exist_ok=True)
     out = {"quick": args.quick, "machine": platform.platform(), "python": platform.python_version(),
            "config": {k: getattr(FeaturesConfig(), k) for k in FeaturesConfig.__dataclass_fields__},
            "synthetic": syn, "real": rl}
-    (OUT / "features.json").write_text(json.dumps(out, indent=1))
+    (args.out / "features.json").write_text(json.dumps(out, indent=1))
 
 
 if __name__ == "__main__":

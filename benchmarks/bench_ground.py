@@ -12,11 +12,13 @@
 - Power-line corridor and AHN4: wire/tower/building recall and precision, wire and tower
   points put in ground, ground kappa.
 
-    python benchmarks/bench_ground.py [--quick]
+    python benchmarks/bench_ground.py [--quick | --smoke --out DIR]
+
+Writes benchmarks/results/ground.json (to --out DIR if given). Anchors not installed are
+skipped.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from pathlib import Path
@@ -30,7 +32,7 @@ from lidar_obstacles.core.pipeline import ObstacleDetector
 from lidar_obstacles.core.ransac import ransac_plane
 from lidar_obstacles.evaluate import ISPRS_SAMPLES
 from lidar_obstacles.io.las import read_las
-from common import quiet_stdout  # (benchmarks/ is on the path)
+from common import bench_args, installed, per_mode, quiet_stdout  # (benchmarks/ is on the path)
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -111,23 +113,18 @@ def csf_ground(xyz: np.ndarray) -> np.ndarray:
     return mask
 
 
-def anchor(name: str, fn, clouds: list[tuple[np.ndarray, np.ndarray]],
-           repeats: int) -> dict | None:
+def anchor(fn, clouds: list[tuple[np.ndarray, np.ndarray]], repeats: int) -> dict:
     """Points per second (best of `repeats` per cloud, as for this package) and mean errors
-    of an anchor ground filter, or None if it is not installed."""
-    try:
-        n = t = 0.0
-        errs, blocks = [], []
-        for xyz, ref in clouds:
-            ground, dt = best_of(lambda: fn(xyz), repeats)
-            t += dt
-            n += len(xyz)
-            e = ground_object_errors(ref == 2, ground)
-            errs.append((e["total_error"], e["kappa"]))
-            blocks.append(block_share(xyz, ref, ground))
-    except ImportError as exc:
-        print(f"({name} not installed: {exc}; `make bench` installs it)")
-        return None
+    of an anchor ground filter."""
+    n = t = 0.0
+    errs, blocks = [], []
+    for xyz, ref in clouds:
+        ground, dt = best_of(lambda: fn(xyz), repeats)
+        t += dt
+        n += len(xyz)
+        e = ground_object_errors(ref == 2, ground)
+        errs.append((e["total_error"], e["kappa"]))
+        blocks.append(block_share(xyz, ref, ground))
     return {"points_per_second": n / t, "mean_total_error": float(np.mean([e[0] for e in errs])),
             "mean_kappa": float(np.mean([e[1] for e in errs])),
             "blocks_share_kappa_gt_0_8": pooled_share(blocks)}
@@ -144,15 +141,12 @@ def pooled_share(blocks: list[tuple[int, float]]) -> float:
     return sum(n * share for n, share in blocks) / max(sum(n for n, _ in blocks), 1)
 
 
-def ransac_anchor(clouds: list[tuple[np.ndarray, np.ndarray]], tile: float = 50.0) -> dict | None:
+def ransac_anchor(clouds: list[tuple[np.ndarray, np.ndarray]], tile: float = 50.0) -> dict:
     """This package's RANSAC plane against open3d's segment_plane on the same tiles: same
     threshold (0.3 m), trials capped alike (1000), so the comparison is time per plane and
     the share of points on the plane found."""
-    try:
-        import open3d as o3d
-    except (ImportError, OSError) as exc:
-        print(f"(open3d unavailable: {exc}; `make bench` installs open3d-cpu and libusb)")
-        return None
+    import open3d as o3d
+
     tiles = []
     for xyz, _ in clouds:
         ij = np.floor((xyz[:, :2] - xyz[:, :2].min(axis=0)) / tile).astype(np.int64)
@@ -179,32 +173,41 @@ def ransac_anchor(clouds: list[tuple[np.ndarray, np.ndarray]], tile: float = 50.
             "open3d_mean_inlier_share": float(np.mean(o3d_share))}
 
 
+def near_towers(xyz: np.ndarray, ref: np.ndarray, n: int) -> np.ndarray:
+    """(N,) bool: the n points nearest (in XY) to the towers' (class 15) centre."""
+    centre = xyz[ref == 15, :2].mean(axis=0) if np.any(ref == 15) else np.median(xyz[:, :2], 0)
+    keep = np.zeros(len(xyz), bool)
+    keep[np.argpartition(np.hypot(*(xyz[:, :2] - centre).T), n - 1)[:n]] = True
+    return keep
+
+
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true")
-    args = ap.parse_args()
-    samples = ISPRS_SAMPLES[:4] if args.quick else ISPRS_SAMPLES
+    args = bench_args(__doc__, "4 ISPRS samples, one corridor tile",
+                      "the smallest ISPRS sample, one repeat, 10 000 corridor points round "
+                      "a tower")
+    samples = per_mode(args, ISPRS_SAMPLES, ISPRS_SAMPLES[:4], ("24",))
+    repeats = per_mode(args, 5, 5, 1)
     rows, blocks, clouds = [], [], []
     n_pts, ground_s, total_s = 0, 0.0, 0.0
-    try:
-        import pysmrf  # noqa: F401
+    if installed("pysmrf", "pysmrf"):
         smrf_s, smrf_errs, smrf_blocks = 0.0, [], []
-    except ImportError as exc:
-        print(f"(pysmrf not installed: {exc}; `make bench` installs it)")
+    else:
         smrf_s, smrf_errs, smrf_blocks = None, None, []
+    with_csf = installed("CSF", "cloth-simulation-filter")
+    with_open3d = installed("open3d", "open3d-cpu")
     for s in samples:
         las = read_las(DATA / "isprs" / f"samp{s}-utm.laz")
         xyz, ref = las.xyz, np.asarray(las.points["classification"])
         clouds.append((xyz, ref))
         if smrf_errs is not None:
             dt_ground, smrf_ground, dt_smrf = best_of_paired(
-                lambda: ground_only(xyz), lambda: pysmrf_ground(xyz), 5)
+                lambda: ground_only(xyz), lambda: pysmrf_ground(xyz), repeats)
             smrf_s += dt_smrf
             e = ground_object_errors(ref == 2, smrf_ground)
             smrf_errs.append((e["total_error"], e["kappa"]))
             smrf_blocks.append(block_share(xyz, ref, smrf_ground))
         else:
-            _, dt_ground = best_of(lambda: ground_only(xyz), 5)
+            _, dt_ground = best_of(lambda: ground_only(xyz), repeats)
         res, dt_total = best_of(lambda: ObstacleDetector(CFG).process(xyz), 1)
         m = evaluate_classes(ref, res.classes, xy=xyz[:, :2])
         go = m["ground_object"]
@@ -227,9 +230,10 @@ def main() -> None:
         "mean_total_error": float(np.mean([e[0] for e in smrf_errs])),
         "mean_kappa": float(np.mean([e[1] for e in smrf_errs])),
         "blocks_share_kappa_gt_0_8": pooled_share(smrf_blocks)}
-    csf = anchor("CSF", csf_ground, clouds, repeats=1)  # ~100 x slower: one run is plenty
-    rans = ransac_anchor(clouds[:4] if args.quick else clouds)
-    methods = {m: anchor(m, method_ground(m), clouds, repeats=1) for m in ("tin", "ransac")}
+    # CSF is ~100 x slower: one run is plenty
+    csf = anchor(csf_ground, clouds, repeats=1) if with_csf else None
+    rans = ransac_anchor(clouds[:4] if args.quick else clouds) if with_open3d else None
+    methods = {m: anchor(method_ground(m), clouds, repeats=1) for m in ("tin", "ransac")}
     out["isprs"].update(pysmrf=smrf, csf=csf, ransac_vs_open3d=rans, methods=methods)
 
     print("| ISPRS sample | Type I % | Type II % | total % | kappa |\n|---|---|---|---|---|")
@@ -268,9 +272,12 @@ def main() -> None:
           "precision | building recall | building precision | wire+tower in ground % | 6x6 blocks "
           "kappa > 0.8 |")
     print("|---|---|---|---|---|---|---|---|---|---|")
-    for f in files[:1] if args.quick else files:
+    for f in per_mode(args, files, files[:1], files[:1]):
         las = read_las(DATA / f)
         xyz, ref = las.xyz, np.asarray(las.points["classification"])
+        if args.smoke:
+            keep = near_towers(xyz, ref, 10_000)
+            xyz, ref = xyz[keep], ref[keep]
         t0 = time.perf_counter()
         res = ObstacleDetector(CFG).process(xyz)
         dt = time.perf_counter() - t0
@@ -296,9 +303,7 @@ def main() -> None:
     print("\nTargets: ISPRS total error <= 4.0 %, kappa >= 0.88, ground filter >= 20 x pysmrf; "
           "corridor wire recall >= 0.98 / precision >= 0.90, tower recall >= 0.95, 14/15 in "
           "ground <= 0.5 %, ground kappa >= 0.90; AHN4 building recall >= 0.90.")
-    (REPO / "benchmarks" / "results").mkdir(parents=True, exist_ok=True)
-    (REPO / "benchmarks" / "results" / "ground.json").write_text(
-        json.dumps(out, indent=2, default=float))
+    (args.out / "ground.json").write_text(json.dumps(out, indent=2, default=float))
 
 
 if __name__ == "__main__":

@@ -10,7 +10,9 @@
   the first 10 % of the flight vs at the end (target growth < 10 %). `--minutes 30` is the
   issue's flight; the default is shorter so `make bench` stays reasonable.
 
-    python benchmarks/bench_pipeline.py [--quick] [--minutes M]
+    python benchmarks/bench_pipeline.py [--quick | --smoke --out DIR] [--minutes M]
+
+Writes benchmarks/results/pipeline.json (to --out DIR if given).
 """
 from __future__ import annotations
 
@@ -27,8 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-RESULTS = REPO / "benchmarks" / "results"
+from common import bench_args, per_mode  # (benchmarks/ is on the path)
 
 
 def rss_mb() -> float:
@@ -85,11 +86,12 @@ def bench_dem_updates(seconds: float) -> dict:
     return out
 
 
-def bench_live_latency(seconds: float, with_dem_builder: bool = False,
+def bench_live_latency(seconds: float, out: Path, with_dem_builder: bool = False,
                        scene: str = "mixed") -> dict:
     """Publish -> `obstacles` latency of the obstacle_detector executable on a simulated
     `scene`; with `with_dem_builder`, the dem_builder executable runs beside it on the same
-    clouds, as on a UAV running both (they share the cores)."""
+    clouds, as on a UAV running both (they share the cores). A node that does not stop
+    leaves its log in `out`."""
     import rclpy
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
@@ -162,7 +164,7 @@ def bench_live_latency(seconds: float, with_dem_builder: bool = False,
         rclpy.try_shutdown()
         for proc in procs:
             proc.send_signal(signal.SIGINT)
-        slow_exits = stopped_nodes(procs, Path(logs.name))
+        slow_exits = stopped_nodes(procs, Path(logs.name), out)
         logs.cleanup()
     lat = np.array(latencies[5:]) if len(latencies) > 10 else np.array(latencies)
     return {"published": len(frames), "received": len(latencies),
@@ -173,9 +175,9 @@ def bench_live_latency(seconds: float, with_dem_builder: bool = False,
             "nodes_not_stopped_in_20_s": slow_exits}
 
 
-def stopped_nodes(procs: list[subprocess.Popen], logs: Path) -> list[str]:
+def stopped_nodes(procs: list[subprocess.Popen], logs: Path, out: Path) -> list[str]:
     """Wait up to 20 s for the nodes sent SIGINT to exit; one that has not is asked for its
-    threads' stacks (SIGUSR1, see run_node), which go to RESULTS/stuck_<node>.log, and
+    threads' stacks (SIGUSR1, see run_node), which go to out/stuck_<node>.log, and
     killed. Returns the names of those nodes."""
     stuck = []
     for proc in procs:
@@ -187,16 +189,16 @@ def stopped_nodes(procs: list[subprocess.Popen], logs: Path) -> list[str]:
             time.sleep(1.0)
             proc.kill()
             proc.wait()
-            RESULTS.mkdir(parents=True, exist_ok=True)
             log = logs / f"{name}.log"
-            (RESULTS / f"stuck_{name}.log").write_text(log.read_text() if log.exists() else "")
+            (out / f"stuck_{name}.log").write_text(log.read_text() if log.exists() else "")
             print(f"warning: {name} did not stop within 20 s of SIGINT (stacks: "
-                  f"{RESULTS / f'stuck_{name}.log'})", file=sys.stderr)
+                  f"{out / f'stuck_{name}.log'})", file=sys.stderr)
             stuck.append(name)
     return stuck
 
 
-def bench_memory(minutes: float) -> dict:
+def bench_memory(minutes: float, every: int) -> dict:
+    """Resident memory sampled every `every` messages (when the nodes trim it: 100)."""
     from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
     from lidar_obstacles.core.arrays import release_free_memory
     from lidar_obstacles.core.pipeline import DemPipeline, ObstacleDetector
@@ -214,7 +216,7 @@ def bench_memory(minutes: float) -> dict:
         dem.process(xyz, stamp=f.stamp, vehicle_xyz=f.position, intensity=f.points["intensity"])
         if i % 10 == 0:
             dem.dem.snapshot()  # the DEM is published once a second
-        if i % 100 == 0:
+        if i % every == 0:
             # The nodes hand freed pages back every 10 s: resident size right after, and
             # the peak (what the machine must have), over the flight.
             release_free_memory()
@@ -233,17 +235,18 @@ def main() -> None:
     single_threaded_blas()  # as the nodes and the CLI run
     reuse_freed_memory()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="short flights")
     ap.add_argument("--minutes", type=float, default=None, help="memory-test flight length")
-    args = ap.parse_args()
-    seconds = 10.0 if args.quick else 30.0
-    minutes = args.minutes if args.minutes is not None else (1.0 if args.quick else 5.0)
+    args = bench_args(__doc__, "short flights",
+                      "2 s flights, memory sampled every 2 messages", ap)
+    seconds = per_mode(args, 30.0, 10.0, 2.0)
+    minutes = args.minutes if args.minutes is not None else per_mode(args, 5.0, 1.0, 2 / 60)
     # memory first: its peak is the process's, and the other parts hold whole flights
-    memory = bench_memory(minutes)
+    memory = bench_memory(minutes, every=per_mode(args, 100, 100, 2))
     res = {"replay": bench_replay(seconds), "dem_update": bench_dem_updates(seconds / 2),
-           "live_latency": bench_live_latency(seconds / 2),
-           "live_latency_with_dem_builder": bench_live_latency(seconds / 2, with_dem_builder=True),
-           "live_latency_forest": bench_live_latency(seconds / 2, scene="forest"),
+           "live_latency": bench_live_latency(seconds / 2, args.out),
+           "live_latency_with_dem_builder": bench_live_latency(seconds / 2, args.out,
+                                                               with_dem_builder=True),
+           "live_latency_forest": bench_live_latency(seconds / 2, args.out, scene="forest"),
            "memory": memory}
     targets = [
         ("replay, x real time", res["replay"]["real_time_factor"], ">= 5"),
@@ -268,8 +271,7 @@ def main() -> None:
     for name, value, target in targets:
         shown = f"{value:.3g}" if isinstance(value, float) else str(value)
         print(f"| {name} | {shown} | {target} |")
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "pipeline.json").write_text(json.dumps(res, indent=2))
+    (args.out / "pipeline.json").write_text(json.dumps(res, indent=2))
 
 
 if __name__ == "__main__":

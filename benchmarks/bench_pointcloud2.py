@@ -13,8 +13,8 @@ reported both in milliseconds and as a ratio to the anchor. Naive ways (NumPy's
 ``recfunctions.append_fields``, rclpy's ``PointCloud2(data=arr.tobytes())``) are timed
 alongside to show what the chosen ones save.
 
-Usage: .venv/bin/python benchmarks/bench_pointcloud2.py [--quick]
-Writes benchmarks/results/pointcloud2.json.
+Usage: .venv/bin/python benchmarks/bench_pointcloud2.py [--quick | --smoke --out DIR]
+Writes benchmarks/results/pointcloud2.json (to --out DIR if given).
 """
 from __future__ import annotations
 
@@ -39,6 +39,7 @@ from lidar_obstacles.io.pointcloud2 import (  # noqa: E402
     select_points,
     xyz_of,
 )
+from common import bench_args, per_mode  # noqa: E402 (benchmarks/ is on the path)
 
 TARGET_MS = 5.0
 POINT_DTYPE = np.dtype({
@@ -73,11 +74,11 @@ def timed(fn, repeat: int) -> dict[str, float]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="fewer repeats")
-    parser.add_argument("--points", type=int, default=100_000)
-    args = parser.parse_args()
-    repeat = 10 if args.quick else 40
-    n = args.points
+    parser.add_argument("--points", type=int, help="points per cloud (100 000; 1 000 with "
+                        "--smoke)")
+    args = bench_args(__doc__, "fewer repeats", "1 000 points, one repeat", parser)
+    repeat = per_mode(args, 40, 10, 1)
+    n = args.points or per_mode(args, 100_000, 100_000, 1_000)
 
     from rclpy.serialization import deserialize_message, serialize_message
     from rosbags.typesys import Stores, get_typestore
@@ -194,8 +195,6 @@ def main() -> None:
           f"{worst['array->msg']:.3f} ms; target < {TARGET_MS} ms each way: "
           f"{'PASS' if passed else 'FAIL'}")
 
-    out_dir = REPO / "benchmarks" / "results"
-    out_dir.mkdir(parents=True, exist_ok=True)
     result = {
         "benchmark": "pointcloud2",
         "points": n,
@@ -210,8 +209,8 @@ def main() -> None:
         "numpy": np.__version__,
         "rows": rows,
     }
-    (out_dir / "pointcloud2.json").write_text(json.dumps(result, indent=2) + "\n")
-    print(f"wrote {out_dir / 'pointcloud2.json'}")
+    (args.out / "pointcloud2.json").write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {args.out / 'pointcloud2.json'}")
 
 
 if __name__ == "__main__":

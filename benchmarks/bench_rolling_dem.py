@@ -2,21 +2,22 @@
 `replay`) publish, built from the detector's ground, and from the simulator's reference
 ground labels as the anchor (a perfect ground filter, the same DEM pipeline).
 
-Usage: .venv/bin/python benchmarks/bench_rolling_dem.py [--quick]
+Usage: .venv/bin/python benchmarks/bench_rolling_dem.py [--quick | --smoke --out DIR]
 
-Each flight (10 Hz, ~50 000 points a message, 10 s; 5 s and two scenes with --quick) goes
+Each flight (10 Hz, ~50 000 points a message, 10 s; 5 s and two scenes with --quick, 1 s
+and one scene with --smoke) goes
 through `DemPipeline` with the default `DemBuilderConfig` (1 m cells, kriging, thinning,
 the 200 m window following the vehicle): `process` (the detector's ground, as the node
 finds it) or `add_ground` of the points labelled 2. The DEM after the last message is
 compared with the simulator's terrain (`scene_ground_height`) at the cell centres:
 measured cells (RMSE, and how many are more than 1 m off: ground taken from objects or
 from noise echoes), and the cells filled by interpolation, by their distance from the
-nearest measured cell (within 2, 2-4, 4-8, 8-20 m). Writes benchmarks/results/rolling_dem.json.
+nearest measured cell (within 2, 2-4, 4-8, 8-20 m). Writes benchmarks/results/rolling_dem.json
+(to --out DIR if given).
 """
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
@@ -24,9 +25,8 @@ from scipy import ndimage
 from lidar_obstacles.config import DemBuilderConfig
 from lidar_obstacles.core.pipeline import DemPipeline
 from lidar_obstacles.core.simulate import SimSettings, scene_ground_height, simulate_flight
-from common import quick_args, table  # (benchmarks/ is on the path)
+from common import bench_args, per_mode, table  # (benchmarks/ is on the path)
 
-OUT = Path(__file__).resolve().parent / "results"
 SCENES = ("mixed", "corridor", "urban", "forest")
 BANDS = ((0.0, 2.0), (2.0, 4.0), (4.0, 8.0), (8.0, 20.0))  # m from the nearest measured cell
 
@@ -69,10 +69,10 @@ def score(grid, settings: SimSettings) -> dict:
 
 
 def main() -> int:
-    args = quick_args(__doc__, "5 s flights, two scenes")
-    seconds = 5.0 if args.quick else 10.0
+    args = bench_args(__doc__, "5 s flights, two scenes", "a 1 s flight, one scene")
+    seconds = per_mode(args, 10.0, 5.0, 1.0)
     rows = []
-    for scene in SCENES[:2] if args.quick else SCENES:
+    for scene in per_mode(args, SCENES, SCENES[:2], SCENES[:1]):
         settings = SimSettings(scene=scene, seed=1, duration=seconds, frame="map")
         for source in ("reference", "detector"):
             rows.append({"flight": f"{scene} {seconds:g} s", "ground": source,
@@ -82,9 +82,8 @@ def main() -> int:
     print("Rolling DEM (default dem_builder settings) minus the true terrain, m; filled "
           "cells by their distance from the nearest measured cell\n")
     print(table(rows, cols))
-    OUT.mkdir(exist_ok=True)
-    (OUT / "rolling_dem.json").write_text(json.dumps(rows, indent=2) + "\n")
-    print(f"\nwrote {OUT / 'rolling_dem.json'}")
+    (args.out / "rolling_dem.json").write_text(json.dumps(rows, indent=2) + "\n")
+    print(f"\nwrote {args.out / 'rolling_dem.json'}")
     return 0
 
 

@@ -1,6 +1,6 @@
 """Ground of one scan at a time on simulated UAV flights: this package against Patchwork++.
 
-Usage: .venv/bin/python benchmarks/bench_scan_ground.py [--quick]
+Usage: .venv/bin/python benchmarks/bench_scan_ground.py [--quick | --smoke --out DIR]
 
 Patchwork++ (Lee et al. 2022; `pypatchworkpp` on PyPI) is the reference ground segmenter
 for scans from a moving vehicle: it takes one scan, in a level frame centred on the
@@ -20,7 +20,8 @@ Patchwork++ gets the points relative to the vehicle in the level map frame (what
 stack with odometry has) and their intensity scaled to 0-1. Reported per flight: ground
 kappa, Type I and II (%), the share of building, wire and tower points taken for ground
 (%), and ms per message (Patchwork++'s `estimateGround` alone, C++; ours the whole ground
-step in Python). Writes benchmarks/results/scan_ground.json.
+step in Python). Writes benchmarks/results/scan_ground.json (to --out DIR if given).
+Without pypatchworkpp installed, this package's rows only.
 """
 from __future__ import annotations
 
@@ -28,7 +29,6 @@ import itertools
 import json
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -36,9 +36,9 @@ from lidar_obstacles.config import ObstacleDetectorConfig, replace
 from lidar_obstacles.core.metrics import ground_object_errors
 from lidar_obstacles.core.pipeline import StreamingGround
 from lidar_obstacles.core.simulate import INTENSITY_SCALE, SimSettings, simulate_flight
-from common import quick_args, quiet_stdout, table  # (benchmarks/ is on the path)
+from common import (bench_args, installed, per_mode,  # (benchmarks/ is on the path)
+                    quiet_stdout, table)
 
-OUT = Path(__file__).resolve().parent / "results"
 ALTITUDE = SimSettings().altitude  # m above the terrain: Patchwork++'s sensor height
 # (scene, seed): the default flights, and an urban one whose blocks of buildings fill
 # most of the swath
@@ -106,14 +106,13 @@ def scores(ref: np.ndarray, ground: np.ndarray) -> dict:
 
 
 def main() -> int:
-    args = quick_args(__doc__, "3 s flights of two scenes, no grid search")
-    try:
-        import pypatchworkpp  # noqa: F401
-    except ImportError as exc:
-        print(f"pypatchworkpp is not installed ({exc}): `make bench` installs it")
-        return 1
-    seconds = 3.0 if args.quick else 10.0
-    flights = FLIGHTS[:1] + FLIGHTS[-1:] if args.quick else FLIGHTS
+    args = bench_args(__doc__, "3 s flights of two scenes, no grid search",
+                      "a 1 s flight, one setting of the grid")
+    with_patchwork = installed("pypatchworkpp", "pypatchworkpp")
+    seconds = per_mode(args, 10.0, 3.0, 1.0)
+    flights = per_mode(args, FLIGHTS, FLIGHTS[:1] + FLIGHTS[-1:], FLIGHTS[:1])
+    # the grid search runs only the anchor: the smoke run checks it runs, on one setting
+    grid = per_mode(args, GRID, {}, {name: values[:1] for name, values in GRID.items()})
     cfg = ObstacleDetectorConfig()
     alone = replace(cfg, {"context.radius": 0.0})
     rows = []
@@ -121,16 +120,17 @@ def main() -> int:
         frames = flight(scene, seed, seconds)
         ref = np.concatenate([f.points["classification"] for f in frames])
         runs = {"ours": lambda: ours(frames, cfg),
-                "ours, no context": lambda: ours(frames, alone),
-                "patchwork++": lambda: patchwork(frames)}
+                "ours, no context": lambda: ours(frames, alone)}
+        if with_patchwork:
+            runs["patchwork++"] = lambda: patchwork(frames)
         for method, run in runs.items():
             ground, sec = run()
             rows.append(dict(flight=f"{scene} (seed {seed})", method=method,
                              ms_per_message=1e3 * sec, **scores(ref, ground)))
-        if not args.quick:
+        if with_patchwork and grid:
             best = None
-            for values in itertools.product(*GRID.values()):
-                settings = dict(zip(GRID, values))
+            for values in itertools.product(*grid.values()):
+                settings = dict(zip(grid, values))
                 ground, sec = patchwork(frames, **settings)
                 row = dict(flight=f"{scene} (seed {seed})", method="patchwork++ best",
                            ms_per_message=1e3 * sec, settings=settings, **scores(ref, ground))
@@ -148,8 +148,7 @@ def main() -> int:
     if tuned:
         print("\npatchwork++ best settings per flight: " + "; ".join(
             f"{r['flight']}: {r['settings']}" for r in tuned))
-    OUT.mkdir(exist_ok=True)
-    (OUT / "scan_ground.json").write_text(json.dumps(rows, indent=2, default=float))
+    (args.out / "scan_ground.json").write_text(json.dumps(rows, indent=2, default=float))
     return 0
 
 

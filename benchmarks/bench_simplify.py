@@ -15,8 +15,8 @@ sample):
    kept point (coverage of walls, wires and towers, which the 2.5-D raster cannot see).
 3. Speed of `simplify` with the default config on a 50 000-point cloud (ms per cloud).
 
-Usage: .venv/bin/python benchmarks/bench_simplify.py [--quick]
-Writes benchmarks/results/simplify.json.
+Usage: .venv/bin/python benchmarks/bench_simplify.py [--quick | --smoke --out DIR]
+Writes benchmarks/results/simplify.json (to --out DIR if given).
 """
 from __future__ import annotations
 
@@ -39,10 +39,9 @@ from lidar_obstacles.core.kmeans import kmeans  # noqa: E402
 from lidar_obstacles.core.simplify import (mean_spacing, normal_space_sample,  # noqa: E402
                                            simplify, tin_raster_correlation, voxel_sample)
 from lidar_obstacles.io.las import read_las  # noqa: E402
-from common import quick_args, table  # noqa: E402 (benchmarks/ is on the path)
+from common import bench_args, per_mode, table  # noqa: E402 (benchmarks/ is on the path)
 
 DATA = REPO.parent / "shared" / "data"
-OUT = REPO / "benchmarks" / "results"
 PAPER = dict(reduction=0.81833, r=0.890, restarts=100, seconds_100_runs=22.392, points=61822)
 
 
@@ -126,8 +125,8 @@ def per_file(rel: str, n: int, cfg: SimplifyConfig, paper_restarts: int) -> tupl
     return row, rows
 
 
-def speed(cfgs: dict[str, SimplifyConfig], repeat: int) -> list[dict]:
-    xyz, inten, ret = load("ahn4/ahn_2496_9727.laz", 56_000)  # ~50 000 first returns
+def speed(cfgs: dict[str, SimplifyConfig], repeat: int, n: int) -> list[dict]:
+    xyz, inten, ret = load("ahn4/ahn_2496_9727.laz", n)  # 56 000: ~50 000 first returns
     out = []
     for name, cfg in cfgs.items():
         best: dict | None = None
@@ -143,27 +142,30 @@ def speed(cfgs: dict[str, SimplifyConfig], repeat: int) -> list[dict]:
 
 
 def main() -> int:
-    args = quick_args(__doc__, "fewer files, 10 restarts")
-    OUT.mkdir(parents=True, exist_ok=True)
+    args = bench_args(__doc__, "fewer files, 10 restarts",
+                      "3 000 AHN4 points, 1 restart, a 5 000-point cloud for the speed")
     quick = args.quick
     cfg = SimplifyConfig()
-    files = ([("ahn4/ahn_2496_9727.laz", 70_000), ("isprs/samp11-utm.laz", 60_000)] if quick
-             else [("ahn4/ahn_2496_9727.laz", 70_000), ("ahn-corridor/07CZ2_14.laz", 50_000),
-                   ("ahn-corridor/12AN2_20.laz", 50_000), ("isprs/samp11-utm.laz", 60_000),
-                   ("isprs/samp31-utm.laz", 60_000), ("isprs/samp52-utm.laz", 60_000)])
+    files = per_mode(args, [("ahn4/ahn_2496_9727.laz", 70_000),
+                            ("ahn-corridor/07CZ2_14.laz", 50_000),
+                            ("ahn-corridor/12AN2_20.laz", 50_000),
+                            ("isprs/samp11-utm.laz", 60_000), ("isprs/samp31-utm.laz", 60_000),
+                            ("isprs/samp52-utm.laz", 60_000)],
+                     [("ahn4/ahn_2496_9727.laz", 70_000), ("isprs/samp11-utm.laz", 60_000)],
+                     [("ahn4/ahn_2496_9727.laz", 3_000)])
     protocol, compare = [], []
     for rel, n in files:
         print(rel, file=sys.stderr, flush=True)
-        row, rows = per_file(rel, n, cfg, 10 if quick else PAPER["restarts"])
+        row, rows = per_file(rel, n, cfg, per_mode(args, PAPER["restarts"], 10, 1))
         protocol.append(row)
         compare += rows
     fast = replace(cfg, validate=True)
     spd = speed({"default": cfg, "default, validate=true": fast,
                  "restarts=10, sample_size=20000": replace(cfg, restarts=10,
                                                            sample_size=20000)},
-                1 if quick else 3)
+                per_mode(args, 3, 1, 1), per_mode(args, 56_000, 56_000, 5_000))
 
-    print(f"# Simplification by K-means++ on normals ({'quick' if quick else 'full'}, "
+    print(f"# Simplification by K-means++ on normals ({args.mode}, "
           f"{platform.node()})\n")
     print(f"Paper (desert, 61 822 first returns): k = 8, best cluster {PAPER['reduction']:.3%} "
           f"reduction, r = {PAPER['r']}, 100 K-means++ runs in {PAPER['seconds_100_runs']} s.\n")
@@ -191,8 +193,8 @@ def main() -> int:
     print(table(spd, ["config", "clustered", "k", "r"] + cols))
     result = dict(quick=quick, machine=platform.node(), paper=PAPER, protocol=protocol,
                   compare=compare, speed=spd)
-    (OUT / "simplify.json").write_text(json.dumps(result, indent=2, default=float) + "\n")
-    print(f"\nwrote {OUT / 'simplify.json'}")
+    (args.out / "simplify.json").write_text(json.dumps(result, indent=2, default=float) + "\n")
+    print(f"\nwrote {args.out / 'simplify.json'}")
     return 0
 
 

@@ -1,6 +1,6 @@
 """Speed of the synthetic flight simulator, per scene, against an anchor.
 
-Usage: .venv/bin/python benchmarks/bench_simulate.py [--quick]
+Usage: .venv/bin/python benchmarks/bench_simulate.py [--quick | --smoke --out DIR]
 
 Two measures per scene at the default 50 000 points per frame:
 - `flight`: frames/s of `simulate_flight` over the first N frames (what `demo` runs);
@@ -9,19 +9,18 @@ Two measures per scene at the default 50 000 points per frame:
 Anchor, measured in the same run: building a scipy cKDTree on 50 000 random points
 (the first step of most downstream stages). The target is a frame in < 50 ms on one core,
 i.e. a 30-minute flight (18 000 frames) in a few minutes.
-Writes benchmarks/results/simulate.json.
+Writes benchmarks/results/simulate.json (to --out DIR if given).
 """
 from __future__ import annotations
 
-import argparse
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from lidar_obstacles.core import simulate as sim
+from common import bench_args, per_mode  # (benchmarks/ is on the path)
 
 
 def _anchor(repeats: int) -> float:
@@ -35,12 +34,11 @@ def _anchor(repeats: int) -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--quick", action="store_true")
-    args = ap.parse_args()
-    n_frames = 30 if args.quick else 150
-    step = 120.0 if args.quick else 30.0
-    anchor = _anchor(5)
+    args = bench_args(__doc__, "30 frames, a frame every 2 min along the path",
+                      "3 frames, two along the path")
+    n_frames = per_mode(args, 150, 30, 3)
+    step = per_mode(args, 30.0, 120.0, 900.0)
+    anchor = _anchor(per_mode(args, 5, 5, 1))
     rows = []
     for scene in sim.SCENES:
         t = time.perf_counter()
@@ -81,10 +79,8 @@ def main() -> None:
               f"{r['frames_per_s']:.1f} | {r['ms_per_frame']:.1f} | "
               f"{r['along_path_ms_per_frame']:.1f} | {r['ratio_to_anchor']:.1f} | "
               f"{r['minutes_for_30_min_flight']:.1f} |")
-    out = Path("benchmarks/results")
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "simulate.json").write_text(json.dumps({"anchor_s": anchor, "rows": rows},
-                                                  indent=2))
+    (args.out / "simulate.json").write_text(json.dumps({"anchor_s": anchor, "rows": rows},
+                                                       indent=2))
 
 
 if __name__ == "__main__":
