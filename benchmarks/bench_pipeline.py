@@ -12,7 +12,8 @@
 
     python benchmarks/bench_pipeline.py [--quick | --smoke --out DIR] [--minutes M]
 
-Writes benchmarks/results/pipeline.json (to --out DIR if given).
+The live parts use the environment's ROS_DOMAIN_ID (the tests set one per run), else a
+random one. Writes benchmarks/results/pipeline.json (to --out DIR if given).
 """
 from __future__ import annotations
 
@@ -99,8 +100,8 @@ def bench_live_latency(seconds: float, out: Path, with_dem_builder: bool = False
     from lidar_obstacles.core.simulate import SimSettings, simulate_flight
     from lidar_obstacles.ros import messages
 
-    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(120, 200)),
-               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    env = dict(os.environ, ROS_DOMAIN_ID=os.environ.get("ROS_DOMAIN_ID")
+               or str(random.randint(120, 200)), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     os.environ.update(env)
     frames = list(simulate_flight(SimSettings(scene=scene, seed=3, duration=seconds)))
 
