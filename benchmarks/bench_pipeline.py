@@ -15,7 +15,8 @@
     python benchmarks/bench_pipeline.py [--quick | --smoke --out DIR] [--minutes M]
 
 The live parts use the environment's ROS_DOMAIN_ID (the tests set one per run), else a
-random one. Writes benchmarks/results/pipeline.json (to --out DIR if given).
+random one of 1-101 (above 101, Linux's ephemeral ports may take a domain's). Writes
+benchmarks/results/pipeline.json (to --out DIR if given).
 """
 from __future__ import annotations
 
@@ -103,7 +104,7 @@ def bench_live_latency(seconds: float, out: Path, with_dem_builder: bool = False
     from lidar_obstacles.ros import messages
 
     env = dict(os.environ, ROS_DOMAIN_ID=os.environ.get("ROS_DOMAIN_ID")
-               or str(random.randint(120, 200)), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+               or str(random.randint(1, 101)), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     os.environ.update(env)
     frames = list(simulate_flight(SimSettings(scene=scene, seed=3, duration=seconds)))
 
