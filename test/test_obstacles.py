@@ -614,6 +614,14 @@ def test_bushes_round_a_towers_foot_are_not_tower_but_its_legs_are():
     assert (c[truth == 15] == 15).mean() > 0.8
     assert (c[len(c) - len(ring) - len(reach_in):][:len(ring)] == 15).mean() < 0.02
     assert (c[truth == 2] == 15).mean() < 0.002  # the ground under the legs only
+    # The tower is an object of its own, a box labelled tower; the thicket's boxes, which
+    # outnumber the tower's points, no longer hold it.
+    boxes = {o.id: o for o in res.objects}
+    in_tower = np.unique(res.object_id[(c == 15) & (res.object_id >= 0)])
+    assert {boxes[i].cls for i in in_tower} == {15}
+    assert sorted(boxes[i].height_above_ground > 40 for i in in_tower).count(True) == 2
+    thicket = [o for o in res.objects if o.cls in (3, 4, 5, 1) and o.min_xyz[0] < -40]
+    assert thicket and max(o.max_xyz[2] for o in thicket) < 3.5
 
 
 def test_a_shrub_inside_a_towers_legs_is_not_tower():

@@ -62,6 +62,10 @@ from lidar_obstacles.core.ransac import ransac_plane
 PARALLEL_MIN = 20000  # query points x neighbours from which cKDTree runs on all cores
 MAX_NEIGHBOURS = 32  # of the shape neighbourhoods: more add little but cost time
 SOLID_NEIGHBOURS = 22  # of a coarse voxel's 26 neighbours occupied: inside a solid (local_shape)
+# A tower's object holds its members up to this far (m) apart: a member hidden in a crown
+# leaves a gap (07CZ2_14, 12AN2_20: 2-point pieces 8-9 m up, 2-3 m from the rest); towers
+# stand 100 m and more apart.
+TOWER_LINK = 5.0
 DENSE_GRID_CELLS = 8_000_000  # voxel box up to which voxel work runs on a dense grid
 BELOW_GROUND_NOISE = 1.5  # m: points this far below the ground surface are noise
 WIRE_GAP = 2.5  # m: a wire point has no other point from this far below it up to 0.5 m
@@ -1268,12 +1272,14 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
             buildings, voxel = _voxel_centroids(b, column_min(b), BUILDING_MEMORY_VOXEL)
             roof = np.bincount(voxel, roofs[is_building], len(buildings)) > 0
             buildings = np.column_stack([buildings, roof])
-        for mask in (is_building, is_wire):
+        for mask, link in ((is_building, 2.0), (is_wire, 2.0), (tower, TOWER_LINK)):
             ids = cand[mask]
             if len(ids):
-                runs = voxel_components(xyz[ids], 2.0)
+                runs = voxel_components(xyz[ids], link)
                 object_id[ids] = next_id + runs
                 next_id += int(runs.max()) + 1
+        _regroup_leftovers(xyz[cand[rest]], labels, kept, (is_building | is_wire | tower)[rest],
+                           object_id, cand[rest], next_id, cfg)
         t3 = time.perf_counter()
         objects = _objects(xyz, hag, classes, object_id)
     else:
@@ -1283,6 +1289,28 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
                            {"noise": t1 - t0, "wires": t2 - t1, "objects": t3 - t2,
                             "summaries": t4 - t3, "total": t4 - t0}, towers, wires,
                            buildings, xyz[cand])
+
+
+def _regroup_leftovers(xyz: np.ndarray, labels: np.ndarray, kept: np.ndarray,
+                       taken: np.ndarray, object_id: np.ndarray, where: np.ndarray,
+                       next_id: int, cfg: ObstaclesConfig) -> None:
+    """Make objects again of what is left of the objects that lost points to a tower, a
+    building or a wire (which are objects of their own): a tree touching a tower's leg
+    was one object with it, and its box, labelled by the more numerous tree points, held
+    the tower (07CZ2_14: a 1 362-point tower in a 6 982-point "high vegetation" box, and no
+    tower box). What is left is grouped anew, as the first grouping did.
+
+    xyz (R, 3) m, the points grouped first, with their object labels (R,) and which
+    labels were objects `kept` (L,) bool; taken (R,) bool: now in an object of their own.
+    object_id (N,) is updated at `where` (R,) indices, new ids from next_id on."""
+    lost = np.zeros(len(kept), bool)
+    lost[labels[taken]] = True
+    left = np.flatnonzero(lost[labels] & kept[labels] & ~taken)
+    if len(left) == 0:
+        return
+    pieces = voxel_components(xyz[left], cfg.cluster_distance)
+    big = np.bincount(pieces) >= cfg.min_points
+    object_id[where[left]] = np.where(big[pieces], next_id + pieces, -1)
 
 
 def _objects(xyz: np.ndarray, hag: np.ndarray, classes: np.ndarray,
