@@ -1162,8 +1162,9 @@ def _islands_and_pits(grid: np.ndarray, cfg: HybridSettings, opening: _Opening
     differ by at most `island_connect`: a wall or a cliff splits pieces, a slope does not.
     An island is a piece at most `island_extent` across, some of whose cells have ground
     more than `island_rise` below them within `island_reach`, and none ground of another
-    piece more than that above them (a steep roof's ridge stands over its own eaves). A roof's ground is such a piece; a terrace has the hill above it, a
-    hilltop slopes down, and a quarry's rim is wider than a roof. Lower ground counts in
+    piece more than that above them (a steep roof's ridge stands over its own eaves). A
+    roof's ground is such a piece; a terrace has the hill above it, a hilltop slopes down,
+    and a quarry's rim is wider than a roof. Lower ground counts in
     pieces of `island_min_cells` or more, and not in a pit: a cell whose window (within
     `island_reach`, inside the grid) is `island_pit_share` or more higher ground. Stray low
     points the blunder test missed are such pits; a street beside a roof has the street,
