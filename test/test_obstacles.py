@@ -849,6 +849,29 @@ def test_a_tower_under_a_crossing_higher_line_is_tower_but_trees_and_cranes_are_
     assert (c[truth == 14] == 14).mean() > 0.98
 
 
+def test_a_tower_carries_spans_not_a_few_scattered_wire_points():
+    """The wire round a tall lattice must run somewhere (TOWER_MIN_SPAN of it with a
+    direction within SAG_FAR): a dozen scattered points that passed the wire test (a
+    slice across a roof, branches) touching it carry nothing; the same with a span
+    hanging from its top on both sides do."""
+    from scipy.spatial import cKDTree
+
+    from lidar_obstacles.core.obstacles import _carries_wires, _WireDirections
+
+    xyz, start, n = _lattice_or_crown(np.random.default_rng(0), True)
+    p = xyz[start:start + n]
+    h = p[:, 2]
+    column = np.hypot(p[:, 0], p[:, 1]) < 0.25 * h.max()
+    rng = np.random.default_rng(1)
+    scattered = rng.uniform([-3, -3, 18], [3, 3, 21], (12, 3))
+    s = np.arange(3.0, 35.0, 0.2)
+    span = np.concatenate([np.column_stack([side * s, np.zeros_like(s),
+                                            21.0 - 0.004 * s ** 2]) for side in (-1, 1)])
+    for wires, carried in ((scattered, False), (np.concatenate([scattered, span]), True)):
+        assert _carries_wires(p, h, np.zeros(2), column, wires, cKDTree(wires),
+                              cKDTree(wires[:, :2]), _WireDirections(wires)) == carried
+
+
 def test_wire_directions_on_the_map_from_voxel_centroids():
     """A bundle of two sub-conductors 0.45 m apart, a point every 2 cm (its 16 nearest
     points lie across it as much as along), runs at 120 degrees; a wire at 30 degrees
