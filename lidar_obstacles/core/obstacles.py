@@ -1080,8 +1080,6 @@ def _carries_wires(p: np.ndarray, h: np.ndarray, top: np.ndarray, column: np.nda
     only the wires of its own lines count, not those of a line crossing over at an angle
     (`_line_filter`)."""
     top_h = float(h.max())
-    if not _lattice(p, h > 0.5 * top_h, column):
-        return False
     dist, near = wire_tree.query(p[column], distance_upper_bound=TOWER_WIRE_GAP)
     col_top = p[column, 2].max()
     # The earth wire hangs from the peak, a thin spike a scanner may miss, and the
@@ -1099,6 +1097,8 @@ def _carries_wires(p: np.ndarray, h: np.ndarray, top: np.ndarray, column: np.nda
     # streamed, and of the simulated corridor flights, 26 m and more.
     if directions.length(np.asarray(wire_xy_tree.query_ball_point(top, r=SAG_FAR),
                                     np.int64)) < TOWER_MIN_SPAN:
+        return False
+    if not _lattice(p, h > 0.5 * top_h, column):
         return False
     # Wire higher than that within TOWER_WIRE_GAP (horizontally) of its upper half
     # passes over it. Only the few wire points that high are searched for: a forest's
