@@ -159,3 +159,35 @@ def test_a_steep_gable_roof_in_a_strips_corner_and_its_walls_are_no_ground():
     up = pts[:, 2] - pts[~roof & ~wall, 2].mean() > 1.5  # higher than any band reaches
     assert not ground[wall & up].any()
     assert ground[~roof & ~wall].mean() > 0.99
+
+
+def test_a_deep_echo_does_not_shield_a_shallower_one_beside_it():
+    """Echoes come in twos and threes a few metres apart. A deep one (11 m down, inside a
+    strip) was the lowest cell in the window of a shallower one (5 m down, just beyond
+    the strip's edge), which therefore passed the low-blunder test and stayed ground: the
+    test runs again without the blunders it found (LOW_ROUNDS). Simulated urban flight,
+    seed 0: such pairs sank its rolling DEM by metres over 20 m around them."""
+    rng = np.random.default_rng(1)
+    pts = _flat(rng, (0.0, 2.0), (30.0, 42.0))
+    pts = np.concatenate([pts, [[10.2, 3.5, -11.0], [12.4, 0.8, -5.0]]])
+    ground, _ = morphological_ground(pts - pts.mean(axis=0), HybridSettings())
+    assert not ground[-2:].any()
+    assert ground[:-2].all()
+
+
+def test_a_lone_echo_far_out_and_a_few_metres_down_leaves_the_ground():
+    """A lone echo at a strip's corner, 3.6 m below flat ground that lies 18 m from it
+    (simulated urban flight, seed 1): with the ground allowed to fall 0.1 per metre
+    towards it (3.8 m there) it stayed ground and sank the rolling DEM; at lone_slope 0.05
+    it leaves. A lone point 1 m below the ground 18 m off stays."""
+    rng = np.random.default_rng(5)
+    pts = _flat(rng, (0.0, 0.0), (30.0, 40.0))
+    lone = np.array([[48.0, 20.0, -3.6]])
+    pts = np.concatenate([pts, lone])
+    ground, _ = morphological_ground(pts - pts.mean(axis=0), HybridSettings())
+    assert not ground[-1] and ground[:-1].all()
+    loose, _ = morphological_ground(pts - pts.mean(axis=0), HybridSettings(lone_slope=0.1))
+    assert loose[-1]
+    pts[-1, 2] = -1.0
+    ground, _ = morphological_ground(pts - pts.mean(axis=0), HybridSettings())
+    assert ground[-1]
