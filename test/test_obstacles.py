@@ -849,6 +849,29 @@ def test_a_tower_under_a_crossing_higher_line_is_tower_but_trees_and_cranes_are_
     assert (c[truth == 14] == 14).mean() > 0.98
 
 
+def test_scattered_twigs_are_no_new_wire_but_pieces_of_one_line_are():
+    """Five horizontal twigs 12-14 m up, 3 m apart, each a line of its own: every point
+    passes the wire test and the 4 m link joins them into a 12 m run. Pointing every way
+    they are crown points of a forest (a new run of fewer than SEED_VOXELS voxels whose
+    axes do not agree); pointing one way they are the pieces of a wire seen with gaps (an
+    earth wire on a sparse scan)."""
+    rng = np.random.default_rng(3)
+
+    def twigs(azimuths):
+        parts = []
+        for i, a in enumerate(np.radians(azimuths)):
+            s = np.linspace(-0.3, 0.3, 5)
+            parts.append(np.column_stack([3.0 * i + s * np.cos(a), 0.7 * i + s * np.sin(a),
+                                          np.full(5, 12.0 + 0.5 * i)]))
+        return np.concatenate(parts)
+
+    for azimuths, wire in ((rng.uniform(0.0, 180.0, 5), False), (np.full(5, 13.0), True)):
+        xyz = twigs(azimuths)
+        classes = classify_obstacles(xyz, np.zeros(len(xyz), bool),
+                                     xyz[:, 2].astype(np.float32), cfg=CFG.obstacles).classes
+        assert (classes == 14).all() == wire and (classes == 14).any() == wire, azimuths
+
+
 def test_a_tower_carries_spans_not_a_few_scattered_wire_points():
     """The wire round a tall lattice must run somewhere (TOWER_MIN_SPAN of it with a
     direction within SAG_FAR): a dozen scattered points that passed the wire test (a
