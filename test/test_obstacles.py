@@ -301,6 +301,23 @@ def test_wall_and_roof_are_building_by_their_own_area():
     assert (res.classes == 6).mean() < 0.02
 
 
+def test_the_foot_of_a_wall_is_building_and_a_shrub_beside_it_is_not():
+    """A wall 8 m high down to 0.2 m: its points below `obstacles.min_height` (0.5 m) are
+    no obstacle candidates, and were low vegetation; under the wall they are building
+    (_wall_feet). A shrub 0.2-0.5 m high 2 m from the wall stays low vegetation."""
+    rng = np.random.default_rng(4)
+    wall = np.column_stack([rng.uniform(0, 12, 4000), rng.normal(0, 0.02, 4000),
+                            rng.uniform(0.2, 8, 4000)])
+    shrub = np.column_stack([rng.uniform(4, 6, 60), rng.uniform(2, 3, 60),
+                             rng.uniform(0.2, 0.5, 60)])
+    xyz = np.concatenate([wall, shrub])
+    classes = classify_obstacles(xyz, np.zeros(len(xyz), bool), xyz[:, 2].astype(np.float32),
+                                 cfg=CFG.obstacles).classes
+    foot = wall[:, 2] < CFG.obstacles.min_height
+    assert foot.sum() > 100 and (classes[:len(wall)][foot] == 6).all()
+    assert (classes[len(wall):] == 3).all()
+
+
 def test_a_tower_seen_before_is_known_from_its_legs():
     xyz, truth, ground, hag, first = _classified_scene(4)
     assert len(first.towers) == 2 and np.allclose(np.sort(first.towers[:, 0]), [-40, 40], atol=2)

@@ -113,6 +113,11 @@ CURVED_FOOT = 2.0  # m: ... and which is steep where it comes this close to the 
 CURVED_FOOT_NZ = np.cos(np.radians(45.0))  # (its normal's median z there at most this)
 BUILDING_PLANARITY = 0.5  # (l2 - l3) / l1 of a roof or wall neighbourhood
 BUILDING_REACH = 1.5  # m: rough points this close to a roof (edges, chimneys) join it
+# The foot of a wall, below `obstacles.min_height` (not an obstacle candidate), is building
+# where it lies within WALL_FOOT_REACH on the map of the building's points up to
+# WALL_FOOT_BAND above that height (see _wall_feet).
+WALL_FOOT_REACH = 0.25  # m
+WALL_FOOT_BAND = 1.0  # m
 QUADRIC_SAMPLE = 4096  # points at most on which a curved patch's quadric is fitted
 THIN_SHARE = 1 / 3  # of a footprint within feature_radius of its edge: a thin strip (shape_context)
 
@@ -1322,6 +1327,8 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
         is_building, roofs = _buildings(xyz, cand, shape, ~is_wire & ~tower, cfg, rng,
                                         known_buildings, hag[cand])
         classes[cand[is_building]] = BUILDING
+        _wall_feet(xyz, hag, nong[hag[nong] < cfg.min_height],
+                   cand[roofs & (hag[cand] < cfg.min_height + WALL_FOOT_BAND)], classes)
         pole = (kept & (extent < 2.0) & (height > 3.0))[labels] & ~is_tower
         classes[cand[rest[pole & ~is_building[rest]]]] = UNCLASSIFIED
         # Wires go on through crowns and clutter (not into towers or roofs)
@@ -1364,6 +1371,29 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
                            {"noise": t1 - t0, "wires": t2 - t1, "objects": t3 - t2,
                             "summaries": t4 - t3, "total": t4 - t0}, towers, wires,
                            buildings, xyz[cand])
+
+
+def _wall_feet(xyz: np.ndarray, hag: np.ndarray, low: np.ndarray, walls: np.ndarray,
+               classes: np.ndarray) -> None:
+    """Class BUILDING for the points `low` (indices of non-ground points below
+    `obstacles.min_height`) that stand under a wall: within WALL_FOOT_REACH on the map of
+    the points `walls` (indices: the lowest band of the buildings' own planar or curved
+    patches, not what clings to them). Those feet were low vegetation: in the demo's 20 s
+    flight 2 866 building points in 47 messages, 0.2-0.5 m up, the commonest wrong class
+    after the ground's band; building recall of the simulated flights +0.5 to +1.5
+    points. Not the band of everything labelled building: on AHN4 that is mostly the
+    reference's class 1 (fences, sheds beside the walls), and its precision fell 0.004;
+    with the patches alone AHN4 is level (recall +0.0004, precision -0.0005). classes
+    (N,) is updated in place."""
+    if len(low) == 0 or len(walls) == 0:
+        return
+    near = np.flatnonzero(all_columns((xyz[low, :2] >= column_min(xyz[walls, :2]) - 1.0)
+                                      & (xyz[low, :2] <= column_max(xyz[walls, :2]) + 1.0)))
+    if len(near) == 0:
+        return
+    dist, _ = search_tree(xyz[walls, :2]).query(
+        xyz[low[near], :2], distance_upper_bound=WALL_FOOT_REACH, workers=_workers(len(near)))
+    classes[low[near[np.isfinite(dist)]]] = BUILDING
 
 
 def _regroup_leftovers(xyz: np.ndarray, labels: np.ndarray, kept: np.ndarray,
