@@ -289,6 +289,32 @@ def test_wire_is_followed_through_a_crown():
     assert (c[off_line] == 14).mean() < 0.01
 
 
+def test_a_wire_known_from_earlier_strips_is_followed_into_a_crown():
+    """A survey's strip holds a wire only where it passes through a crown: nothing there is
+    linear, but the wire found in the strips before leads in. A known wire passing 1.5 m
+    over another crown takes none of the leaves under it."""
+    xyz, truth = _span_through_crown(np.random.default_rng(4))
+    strip = np.abs(xyz[:, 0]) < 5.0  # this message: the crown's middle and the wire in it
+    known_wire = (truth == 14) & (xyz[:, 0] < -5.0) & (xyz[:, 0] > -30.0)
+    known = xyz[known_wire][::5]  # thinned, as the memory keeps it
+    msg, t = xyz[strip], truth[strip]
+    hag = msg[:, 2].astype(np.float32)
+    alone = classify_obstacles(msg, np.zeros(len(msg), bool), hag, cfg=CFG.obstacles).classes
+    assert (alone[t == 14] == 14).mean() < 0.5  # the strip alone does not show it
+    led = classify_obstacles(msg, np.zeros(len(msg), bool), hag, cfg=CFG.obstacles,
+                             known_wires=known).classes
+    assert (led[t == 14] == 14).mean() > 0.9
+    off_line = (t == 5) & (np.minimum(np.abs(msg[:, 1]), np.abs(msg[:, 1] - 0.5)) > 0.3)
+    assert (led[off_line] == 14).mean() < 0.01
+    rng = np.random.default_rng(5)
+    crown = rng.normal(0, 1.0, (6000, 3)) * [3.0, 3.0, 1.5] + [0, 0, 14.0]
+    crown = crown[crown[:, 2] < 18.5]
+    over = np.column_stack([np.linspace(-30, -5, 100), np.zeros(100), np.full(100, 20.0)])
+    c = classify_obstacles(crown, np.zeros(len(crown), bool), crown[:, 2].astype(np.float32),
+                           cfg=CFG.obstacles, known_wires=over).classes
+    assert np.count_nonzero(c[np.abs(crown[:, 1]) < 2.0] == 14) == 0
+
+
 def test_wall_and_roof_are_building_by_their_own_area():
     rng = np.random.default_rng(3)
     wall = np.column_stack([rng.uniform(0, 12, 3000), np.zeros(3000), rng.uniform(0.5, 8, 3000)])

@@ -83,6 +83,8 @@ WIRE_STEP = 1.5  # m: how far a wire is followed from a known wire point per rou
 WIRE_TUBE = 0.15  # m: off a wire's line a followed point may lie (measured: 0.25 took leaves)
 WIRE_DRIFT = 0.5  # m: off the line of the known wire a followed chain may end (sag)
 WIRE_FOLLOW_ROUNDS = 12  # rounds of following: ~18 m of crown or clutter
+KNOWN_WIRE_REACH = 3.0  # m: the first step from a wire of earlier messages (strips' gaps)
+KNOWN_WIRE_AXIS_REACH = 5.0  # m: ... along the line of the known wire this close to it
 TOWER_WIRE_GAP = 3.0  # m: a tower has wire points this close to it
 TOWER_MIN_SPAN = 10.0  # m: ... and at least this much wire with a direction within SAG_FAR
 LATTICE_VOXEL = 0.75  # m: voxels in which a tower's upper column is never solid (_lattice)
@@ -622,39 +624,106 @@ def _off_line(p: np.ndarray, origin: np.ndarray, axis: np.ndarray) -> np.ndarray
     return row_norm(d - along[:, None] * axis)
 
 
+def _known_wire_seeds(known: np.ndarray, pts: np.ndarray, found: np.ndarray,
+                      cfg: ObstaclesConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The wire points `known` (K, 3) m of earlier messages from which a wire may be
+    followed into the points pts (P, 3) m, and their lines' unit axes, as two (S, 3)
+    arrays: one per WIRE_MEMORY_VOXEL voxel of the known wire within KNOWN_WIRE_REACH of
+    a point of pts but not within WIRE_STEP of this message's own wire points `found`
+    (F, 3) (from which it is followed anyway), whose known wire within
+    KNOWN_WIRE_AXIS_REACH lies on a line (linearity above cfg.wire_linearity, no steeper
+    than cfg.wire_max_slope). A survey's 0.1 s strip may hold a piece of wire only where
+    it passes through a crown: nothing there is linear, so nothing of this message starts
+    the following, but the wire found in the strips before leads in (the corridor tile
+    07CZ2_14 streamed: 627 of 16 312 wire points were vegetation). Voxels, not the
+    known points: a UAV that scans a wire again and again remembers each piece many
+    times over (the simulated corridor: ~100 copies, 24 -> 130-350 ms a message)."""
+    none = np.zeros((0, 3))
+    if len(known) == 0 or len(pts) == 0:
+        return none, none
+    lo, hi = column_min(pts), column_max(pts)
+    reach = KNOWN_WIRE_REACH + KNOWN_WIRE_AXIS_REACH
+    known = known[np.all((known >= lo - reach) & (known <= hi + reach), axis=1)]
+    if len(known) < 3:
+        return none, none
+    known, _ = _voxel_centroids(known, column_min(known), WIRE_MEMORY_VOXEL)
+    dist, _ = search_tree(pts).query(known, distance_upper_bound=KNOWN_WIRE_REACH)
+    seeds = known[np.isfinite(dist)]
+    if len(seeds) and len(found):
+        dist, _ = search_tree(found).query(seeds, distance_upper_bound=WIRE_STEP)
+        seeds = seeds[~np.isfinite(dist)]
+    if len(seeds) == 0:
+        return none, none
+    i, j = neighbour_pairs(seeds, known, KNOWN_WIRE_AXIS_REACH)
+    d = known[j] - seeds[i]  # centred on the seed: survey coordinates keep their precision
+    count = np.maximum(np.bincount(i, minlength=len(seeds)), 1).astype(np.float64)
+    mean = np.column_stack([np.bincount(i, d[:, a], len(seeds)) for a in range(3)])
+    mean /= count[:, None]
+    cov = np.empty((len(seeds), 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            cov[:, a, b] = cov[:, b, a] = (np.bincount(i, d[:, a] * d[:, b], len(seeds))
+                                           / count - mean[:, a] * mean[:, b])
+    values = np.maximum(symmetric_eigenvalues3(cov), 0.0)
+    axis = eigenvector3(cov, values[:, 0])
+    linear = ((values[:, 0] - values[:, 1]) / np.maximum(values[:, 0], 1e-12)
+              > cfg.wire_linearity)
+    ok = (linear & (count >= 3)
+          & (np.abs(axis[:, 2]) < np.sin(np.radians(cfg.wire_max_slope))))
+    return seeds[ok], axis[ok]
+
+
 def _follow_wires(pts: np.ndarray, allowed: np.ndarray, axis: np.ndarray,
-                  is_wire: np.ndarray) -> None:
+                  is_wire: np.ndarray, seeds: np.ndarray | None = None,
+                  seed_axis: np.ndarray | None = None) -> None:
     """Grow `is_wire` (M,) in place: an allowed point within WIRE_STEP of a wire point and
     within WIRE_TUBE of that wire point's line is wire too. A wire through a crown is no
     longer linear in its neighbourhood (the leaves around it are not), but it stays on its
     line; ~1.5 m per round, so a 15 m crown takes 10 rounds. A followed point carries on the
     axis of the wire point it was followed from and the origin of the known wire where the
     chain began: the chain may bend with the sag, but not drift leaf by leaf more than
-    WIRE_DRIFT from that wire's line."""
+    WIRE_DRIFT from that wire's line.
+
+    seeds (S, 3) m with their unit axes (S, 3): wire points of earlier messages
+    (`_known_wire_seeds`) from which the first step reaches KNOWN_WIRE_REACH: a strip's
+    first point on a wire may lie that far from the last the strip before it saw."""
+    m = len(pts)
+    grown = is_wire
+    if seeds is not None and len(seeds):
+        pts = np.concatenate([pts, seeds])
+        allowed = np.concatenate([allowed, np.zeros(len(seeds), bool)])
+        axis = np.concatenate([axis, seed_axis])
+        grown = np.concatenate([is_wire, np.ones(len(seeds), bool)])
     origin = pts.copy()
     line_axis = axis.copy()
-    front = np.flatnonzero(is_wire)
-    for _ in range(WIRE_FOLLOW_ROUNDS):
-        free = np.flatnonzero(allowed & ~is_wire)
+
+    def step(front: np.ndarray, reach: float) -> np.ndarray:
+        """The points the wire points `front` take on (marked in `grown`)."""
+        free = np.flatnonzero(allowed & ~grown)
         if len(free) == 0 or len(front) == 0:
-            return
-        owner, src = neighbour_pairs(pts[free], pts[front], WIRE_STEP)
-        if len(owner) == 0:
-            return
+            return free[:0]
+        owner, src = neighbour_pairs(pts[free], pts[front], reach)
         owner, src = free[owner], front[src]
         perp = _off_line(pts[owner], pts[src], line_axis[src])
         ok = (perp < WIRE_TUBE) & (_off_line(pts[owner], origin[src], line_axis[src])
                                    < WIRE_DRIFT)
-        if not ok.any():
-            return
         # each new point joins the line it lies closest to
         best = np.lexsort((perp[ok], owner[ok]))
         first = np.ones(len(best), bool)
         first[1:] = owner[ok][best[1:]] != owner[ok][best[:-1]]
         new, via = owner[ok][best[first]], src[ok][best[first]]
-        is_wire[new] = True
+        grown[new] = True
         origin[new], line_axis[new] = origin[via], line_axis[via]
-        front = new
+        return new
+
+    front = np.flatnonzero(grown[:m])
+    if len(pts) > m:
+        front = np.concatenate([front, step(np.arange(m, len(pts)), KNOWN_WIRE_REACH)])
+    for _ in range(WIRE_FOLLOW_ROUNDS):
+        front = step(front, WIRE_STEP)
+        if len(front) == 0:
+            break
+    is_wire[:] = grown[:m]
 
 
 def patch_area(pts: np.ndarray, labels: np.ndarray, cell: float = 1.0) -> np.ndarray:
@@ -1368,9 +1437,11 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
         pole = (kept & (extent < 2.0) & (height > 3.0))[labels] & ~is_tower
         classes[cand[rest[pole & ~is_building[rest]]]] = UNCLASSIFIED
         # Wires go on through crowns and clutter (not into towers or roofs)
-        if is_wire.any():
+        if is_wire.any() or len(known_wires):
             followable = (hag[cand] > cfg.wire_min_clearance) & ~is_building & ~tower
-            _follow_wires(xyz[cand], followable, shape.axis, is_wire)
+            seeds, seed_axis = _known_wire_seeds(known_wires, xyz[cand[followable]],
+                                                 xyz[cand[is_wire]], cfg)
+            _follow_wires(xyz[cand], followable, shape.axis, is_wire, seeds, seed_axis)
             classes[cand[is_wire]] = WIRE
         # Tower legs stand on the ground: their lowest points are within the ground filter's
         # band, but a UAV must never take them for ground.
