@@ -647,11 +647,13 @@ def _known_wire_seeds(known: np.ndarray, pts: np.ndarray, found: np.ndarray,
     if len(known) < 3:
         return none, none
     known, _ = _voxel_centroids(known, column_min(known), WIRE_MEMORY_VOXEL)
-    dist, _ = search_tree(pts).query(known, distance_upper_bound=KNOWN_WIRE_REACH)
-    seeds = known[np.isfinite(dist)]
-    if len(seeds) and len(found):
+    seeds = known
+    if len(found):  # (first: a UAV sees again most of the wire it knows)
         dist, _ = search_tree(found).query(seeds, distance_upper_bound=WIRE_STEP)
         seeds = seeds[~np.isfinite(dist)]
+    if len(seeds):
+        dist, _ = search_tree(pts).query(seeds, distance_upper_bound=KNOWN_WIRE_REACH)
+        seeds = seeds[np.isfinite(dist)]
     if len(seeds) == 0:
         return none, none
     i, j = neighbour_pairs(seeds, known, KNOWN_WIRE_AXIS_REACH)
