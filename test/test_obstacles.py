@@ -1086,6 +1086,31 @@ def test_a_short_piece_continuing_a_remembered_wire_is_wire():
     assert step(det, 40.0, 46.0, 1.0 + det.wires.seconds + 1.0) == 0.0  # forgotten
 
 
+def test_a_strip_holding_a_wire_only_inside_a_crown_gets_it_from_the_strip_before():
+    """The detector remembers the wire of one strip and follows it into the next, whose
+    only piece of it runs through a crown."""
+    from lidar_obstacles.core.pipeline import GroundStep, ObstacleDetector
+
+    xyz, truth = _span_through_crown(np.random.default_rng(6))
+    rng = np.random.default_rng(7)
+
+    def step(det, x0, x1, stamp):
+        part = (xyz[:, 0] >= x0) & (xyz[:, 0] < x1)
+        g = np.column_stack([rng.uniform(x0, x1, 3000), rng.uniform(-15, 15, 3000),
+                             rng.normal(0, 0.02, 3000)])
+        pts = np.concatenate([g, xyz[part]])
+        ground = np.arange(len(pts)) < len(g)
+        hag = np.where(ground, 0.0, pts[:, 2]).astype(np.float32)
+        res = det.obstacle_step(GroundStep(pts, ground, hag, stamp, None, {}))
+        wire = truth[part] == 14
+        return (res.classes[len(g):][wire] == 14).mean()
+
+    assert step(ObstacleDetector(), -11.5, 6.0, 0.1) < 0.5  # 2-3 m of it outside the crown
+    det = ObstacleDetector()
+    assert step(det, -40.0, -11.5, 0.0) > 0.95
+    assert step(det, -11.5, 6.0, 0.1) > 0.9
+
+
 def test_a_small_piece_of_a_remembered_roof_is_building():
     """A thin strip catches a roof in pieces smaller than `building_min_area`: one that
     continues a roof of an earlier message is building; alone it is not."""

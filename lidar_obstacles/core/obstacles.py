@@ -688,7 +688,9 @@ def _follow_wires(pts: np.ndarray, allowed: np.ndarray, axis: np.ndarray,
 
     seeds (S, 3) m with their unit axes (S, 3): wire points of earlier messages
     (`_known_wire_seeds`) from which the first step reaches KNOWN_WIRE_REACH: a strip's
-    first point on a wire may lie that far from the last the strip before it saw."""
+    first point on a wire may lie that far from the last the strip before it saw. That
+    step's tube is wider by half a WIRE_MEMORY_VOXEL: a seed is the centroid of a voxel,
+    which two conductors 0.5 m apart may share (then it lies between them)."""
     m = len(pts)
     grown = is_wire
     if seeds is not None and len(seeds):
@@ -699,7 +701,7 @@ def _follow_wires(pts: np.ndarray, allowed: np.ndarray, axis: np.ndarray,
     origin = pts.copy()
     line_axis = axis.copy()
 
-    def step(front: np.ndarray, reach: float) -> np.ndarray:
+    def step(front: np.ndarray, reach: float, tube: float = WIRE_TUBE) -> np.ndarray:
         """The points the wire points `front` take on (marked in `grown`)."""
         free = np.flatnonzero(allowed & ~grown)
         if len(free) == 0 or len(front) == 0:
@@ -707,8 +709,8 @@ def _follow_wires(pts: np.ndarray, allowed: np.ndarray, axis: np.ndarray,
         owner, src = neighbour_pairs(pts[free], pts[front], reach)
         owner, src = free[owner], front[src]
         perp = _off_line(pts[owner], pts[src], line_axis[src])
-        ok = (perp < WIRE_TUBE) & (_off_line(pts[owner], origin[src], line_axis[src])
-                                   < WIRE_DRIFT)
+        ok = (perp < tube) & (_off_line(pts[owner], origin[src], line_axis[src])
+                              < WIRE_DRIFT)
         # each new point joins the line it lies closest to
         best = np.lexsort((perp[ok], owner[ok]))
         first = np.ones(len(best), bool)
@@ -720,7 +722,8 @@ def _follow_wires(pts: np.ndarray, allowed: np.ndarray, axis: np.ndarray,
 
     front = np.flatnonzero(grown[:m])
     if len(pts) > m:
-        front = np.concatenate([front, step(np.arange(m, len(pts)), KNOWN_WIRE_REACH)])
+        front = np.concatenate([front, step(np.arange(m, len(pts)), KNOWN_WIRE_REACH,
+                                            WIRE_TUBE + WIRE_MEMORY_VOXEL / 2.0)])
     for _ in range(WIRE_FOLLOW_ROUNDS):
         front = step(front, WIRE_STEP)
         if len(front) == 0:
