@@ -475,7 +475,19 @@ class NodeInputConfig:
 
 
 @dataclass(frozen=True)
-class ObstacleDetectorConfig(NodeInputConfig):
+class PointsNodeConfig(NodeInputConfig):
+    """A node that publishes its input points (the detector, the simplifier)."""
+
+    odometry_xyz_type: str = param(
+        "input", "the type of `x y z` in the published points when `use_odometry` moved "
+        "them: `input` keeps the input's (every field's type and place as it came; FLOAT32 "
+        "holds a coordinate beyond 131 km only to 1.6 cm or coarser, a UTM northing to "
+        "0.5 m: the nodes warn once), `float64` widens them to FLOAT64",
+        choices=("input", "float64"))
+
+
+@dataclass(frozen=True)
+class ObstacleDetectorConfig(PointsNodeConfig):
     input: CloudInputConfig = field(default_factory=CloudInputConfig)
     tiling: TilingConfig = field(default_factory=TilingConfig)
     ground: GroundConfig = field(default_factory=GroundConfig)
@@ -505,7 +517,7 @@ class DemBuilderConfig(NodeInputConfig):
 
 
 @dataclass(frozen=True)
-class CloudSimplifierConfig(NodeInputConfig):
+class CloudSimplifierConfig(PointsNodeConfig):
     simplify: SimplifyConfig = field(default_factory=SimplifyConfig)
 
 

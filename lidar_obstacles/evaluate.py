@@ -56,15 +56,18 @@ class LabelledInput:
         return sum(len(c.xyz) for c in self.clouds)
 
 
-def _from_points(points: np.ndarray, stamp: float) -> LabelledCloud:
+def _from_points(points: np.ndarray, stamp: float, xyz: np.ndarray | None = None
+                 ) -> LabelledCloud:
+    """A labelled cloud of structured `points` (N,); `xyz` (N, 3) m, float64, when known
+    more exactly than the points' own fields hold them (a cloud moved into a far frame)."""
     from lidar_obstacles.io.pointcloud2 import xyz_of
 
     names = points.dtype.names or ()
     if "classification" not in names:
         raise CloudFormatError("clouds have no 'classification' field to evaluate against")
     pred = np.asarray(points["class"], np.uint8) if "class" in names else None
-    return LabelledCloud(stamp, xyz_of(points), np.asarray(points["classification"], np.uint8),
-                         pred)
+    return LabelledCloud(stamp, xyz_of(points) if xyz is None else xyz,
+                         np.asarray(points["classification"], np.uint8), pred)
 
 
 def load_input(path: str | Path, *, topic: str | None = None,
@@ -150,7 +153,7 @@ def _labelled_clouds(reader, topic: str | None, cfg: NodeInputConfig,
         try:
             prep = prepare(msg, keep_non_finite=False, max_points=cfg.input.max_points,
                            pose=pose, transform=cfg.use_odometry)
-            cloud = _from_points(prep.points, stamp_ns * 1e-9)
+            cloud = _from_points(prep.points, stamp_ns * 1e-9, prep.xyz)
         except CloudFormatError as exc:
             key = reason_key(str(exc))
             rejected[key] = rejected.get(key, 0) + 1

@@ -139,13 +139,16 @@ def test_a_dense_real_survey_moved_2_km_up_keeps_its_classes():
     np.testing.assert_array_equal(_classes(xyz + [0.0, 0.0, 2000.0]), _classes(xyz))
 
 
-def test_a_cloud_moved_into_a_utm_odometry_frame_keeps_its_positions():
-    # A sensor-frame cloud with FLOAT32 x y z moved by a UTM pose was written back into
-    # its FLOAT32 fields: its outputs' positions, and the points `evaluate` classified,
-    # were 0.1-0.2 m off in y (northing 5.7e6 m: 0.5 m steps).
+def test_a_cloud_moved_into_a_utm_odometry_frame_is_classified_at_its_exact_positions():
+    # A sensor-frame cloud with FLOAT32 x y z moved by a UTM pose: FLOAT32 holds its
+    # northing (5.7e6 m) only in 0.5 m steps. The points are classified, and `evaluate`
+    # places them, at their float64 positions whatever the published fields' type (they
+    # were 0.1-0.2 m off in y when read back from the fields); `odometry_xyz_type:
+    # float64` publishes them exactly, the default keeps the input's layout and says so.
+    from lidar_obstacles.config import ObstacleDetectorConfig, replace
     from lidar_obstacles.evaluate import _from_points
     from lidar_obstacles.ros import messages
-    from lidar_obstacles.ros.stages import Pose, prepare
+    from lidar_obstacles.ros.stages import Pose, coarse_xyz_warning, prepare
 
     pts = np.zeros(3, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
                              ("intensity", "<f4"), ("classification", "u1")])
@@ -154,12 +157,23 @@ def test_a_cloud_moved_into_a_utm_odometry_frame_keeps_its_positions():
     msg = messages.cloud(pts, messages.header(10**9, "lidar"))
     pose = Pose(10**9, np.array([512345.678, 5712345.678, 345.6]),
                 np.array([0.0, 0.0, 0.3826834, 0.9238795]), "utm")
-    prep = prepare(msg, keep_non_finite=False, max_points=100, pose=pose, transform=True)
     expected = (np.column_stack([pts["x"], pts["y"], pts["z"]]).astype(np.float64)
                 @ pose.rotation().T + pose.position)
-    np.testing.assert_array_equal(prep.xyz, expected)
-    np.testing.assert_array_equal(_from_points(prep.points, 1.0).xyz, expected)
-    assert prep.points["classification"].tolist() == [2, 5, 6] and prep.frame_id == "utm"
+    for widen in (False, True):
+        prep = prepare(msg, keep_non_finite=False, max_points=100, pose=pose, transform=True,
+                       widen_xyz=widen)
+        np.testing.assert_array_equal(prep.xyz, expected)
+        np.testing.assert_array_equal(_from_points(prep.points, 1.0, prep.xyz).xyz, expected)
+        assert prep.points["classification"].tolist() == [2, 5, 6] and prep.frame_id == "utm"
+        assert (prep.points.dtype["y"] == np.float64) == widen
+        published = np.column_stack([prep.points[a] for a in "xyz"]).astype(float)
+        assert (np.abs(published - expected).max() < 1e-9) == widen
+    cfg = replace(ObstacleDetectorConfig(), {"use_odometry": True})
+    said = coarse_xyz_warning(msg, pose, cfg)
+    assert said is not None and "0.5 m" in said and "odometry_xyz_type" in said
+    assert coarse_xyz_warning(msg, pose, replace(cfg, {"odometry_xyz_type": "float64"})) is None
+    near = Pose(10**9, np.array([3512.3, -812.5, 345.6]), pose.orientation, "odom")
+    assert coarse_xyz_warning(msg, near, cfg) is None  # a local frame: FLOAT32 to 0.5 mm
 
 
 def _with_noise_and_a_pole(xyz):

@@ -92,6 +92,17 @@ def test_sensor_frame_flight_needs_and_uses_odometry(tmp_path):
     with BagReader(out) as reader:
         rec = next(reader.records(["/obstacles"]))
         assert reader.deserialize(rec).header.frame_id == "map"
+    # the moved points keep the input's layout, x y z included, unless widened
+    given, moved = clouds(sensor, "/points")[0], clouds(out, "/ground")[0]
+    assert given.dtype["x"] == np.float32 and all(
+        moved.dtype[a] == given.dtype[a] for a in given.dtype.names)
+    wide = tmp_path / "wide.yaml"
+    wide.write_text(params.read_text() + "    odometry_xyz_type: float64\n")
+    run_cli("replay", sensor, tmp_path / "wide", "--params-file", wide, "--no-dem")
+    widened = clouds(tmp_path / "wide", "/ground")[0]
+    assert [widened.dtype[a] for a in "xyz"] == [np.float64] * 3
+    np.testing.assert_allclose(np.column_stack([widened[a] for a in "xyz"]),
+                               np.column_stack([moved[a] for a in "xyz"]), atol=1e-3)
     # The same flight in the map frame gives the same classes.
     mapped = tmp_path / "map"
     run_cli("simulate", mapped, "--duration", "1", "--seed", "3")

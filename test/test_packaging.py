@@ -52,12 +52,13 @@ def test_package_xml_declares_every_ros_import():
     assert root.get("format") == "3"
     deps = {e.text for e in root if e.tag.endswith("depend")}
     imported = set()
-    for path in (REPO / "lidar_obstacles").rglob("*.py"):
+    for path in [*(REPO / "lidar_obstacles").rglob("*.py"), *(REPO / "launch").glob("*.py")]:
         for m in re.finditer(r"^\s*(?:from|import) (\w+)", path.read_text(), re.M):
             imported.add(m.group(1))
     ros_pkgs = {p for p in imported
-                if p.endswith(("_msgs", "_srvs", "_interfaces")) or p == "rclpy"}
-    assert ros_pkgs, "the ROS layer imports message packages"
+                if p.endswith(("_msgs", "_srvs", "_interfaces", "_python"))
+                or p in ("rclpy", "launch", "launch_ros")}
+    assert ros_pkgs >= {"rclpy", "launch", "launch_ros"}, "the nodes and the launch file"
     assert ros_pkgs <= deps, ros_pkgs - deps
     assert root.find("export/build_type").text == "ament_python"
 

@@ -366,7 +366,7 @@ def test_with_xyz_carries_utm_coordinates_and_keeps_the_other_fields(order, coor
     pts["intensity"], pts["classification"] = [1, 2, 3, 65535], [2, 5, 6, 14]
     pts["gps_time"] = [1.5, 2.5, 3.5, 4.5]
     xyz = np.array([[512345.678, 5712345.678, 345.61]] * 4) + np.arange(4)[:, None] * 0.01
-    out = with_xyz(pts, xyz)
+    out = with_xyz(pts, xyz, widen=True)
     assert out.dtype.names == pts.dtype.names
     assert np.array_equal(xyz_of(out), xyz)  # FLOAT32 held the northing to 0.5 m
     for name in ("x", "y", "z"):
@@ -375,6 +375,12 @@ def test_with_xyz_carries_utm_coordinates_and_keeps_the_other_fields(order, coor
         assert out[name].tobytes() == pts[name].tobytes()
     assert fields_from_dtype(out.dtype)  # publishable
     assert np.array_equal(xyz_of(pts), np.zeros((4, 3)))  # the input untouched
+    # not widened: the layout is the input's, byte for byte, the values rounded to it
+    kept = with_xyz(pts, xyz)
+    assert kept.dtype == pts.dtype
+    assert np.array_equal(xyz_of(kept), xyz.astype(coord).astype(float))
+    for name in ("intensity", "classification", "gps_time"):
+        assert kept[name].tobytes() == pts[name].tobytes()
 
 
 def test_select_points_keeps_every_byte():

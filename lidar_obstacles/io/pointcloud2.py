@@ -375,21 +375,20 @@ def xyz_of(points: np.ndarray) -> np.ndarray:
     return out
 
 
-def with_xyz(points: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-    """A copy of 1-D structured ``points`` (N,) whose ``x y z`` are ``xyz`` (N, 3) metres,
-    as FLOAT64 fields in the cloud's byte order; every other field keeps its name, order
-    (by offset), datatype and exact bytes, packed without padding when x, y, z widen.
+def with_xyz(points: np.ndarray, xyz: np.ndarray, *, widen: bool = False) -> np.ndarray:
+    """A copy of 1-D structured ``points`` (N,) whose ``x y z`` are ``xyz`` (N, 3) metres;
+    every other field keeps its name, order (by offset), datatype and exact bytes.
 
-    Why: FLOAT32 holds a coordinate of a survey's frame only coarsely (a UTM northing,
-    ~5.7e6 m, to 0.5 m; an easting, ~5e5 m, to 3 cm), so a sensor-frame cloud moved into
-    such a frame and written back into its FLOAT32 fields lost that much (its outputs'
-    positions, and the points `evaluate` classified)."""
+    Without `widen` the fields keep their own types too (the layout byte for byte, what
+    subscribers of the input expect). With it, x y z become FLOAT64 in the cloud's byte
+    order, packed without padding, for frames whose coordinates FLOAT32 holds only
+    coarsely (a UTM northing, ~5.7e6 m, to 0.5 m; an easting, ~5e5 m, to 3 cm)."""
     _check_xyz(points.dtype)
-    names = sorted(points.dtype.names, key=lambda n: _field(points.dtype, n)[1])
     f8 = np.dtype("f8").newbyteorder(_byte_order(points.dtype) or _NATIVE)
-    if all(_field(points.dtype, n)[0] == f8 for n in _XYZ):
+    if not widen or all(_field(points.dtype, n)[0] == f8 for n in _XYZ):
         out = points.copy()
     else:
+        names = sorted(points.dtype.names, key=lambda n: _field(points.dtype, n)[1])
         formats = [f8 if n in _XYZ else _field(points.dtype, n)[0] for n in names]
         out = np.empty(points.shape, dtype=np.dtype({"names": names, "formats": formats}))
         for name in names:

@@ -36,7 +36,8 @@ from lidar_obstacles.core.arrays import (release_free_memory, reuse_freed_memory
 from lidar_obstacles.errors import ConfigError, LidarObstaclesError, reason_key
 from lidar_obstacles.ros import messages
 from lidar_obstacles.ros.params import declare_config, on_parameter_change
-from lidar_obstacles.ros.stages import Pose, moving_frame_warning, pose_of_odometry
+from lidar_obstacles.ros.stages import (Pose, coarse_xyz_warning, moving_frame_warning,
+                                        pose_of_odometry)
 
 WARN_THROTTLE_S = 5.0
 
@@ -272,9 +273,10 @@ class PipelineNode(Node):
         if cfg.use_odometry and pose is None:
             self._reject("no odometry pose near the cloud's stamp", counter="dropped_no_pose")
             return
-        warning = moving_frame_warning(msg.header.frame_id, pose, cfg.use_odometry)
-        if warning is not None:
-            self.get_logger().warning(warning, once=True)
+        for warning in (moving_frame_warning(msg.header.frame_id, pose, cfg.use_odometry),
+                        coarse_xyz_warning(msg, pose, cfg)):
+            if warning is not None:
+                self.get_logger().warning(warning, once=True)
         t0 = time.perf_counter()
         try:
             n_in, n_out = self.process_cloud(msg, pose)

@@ -28,7 +28,8 @@ from lidar_obstacles.io.shared_pickle import (BlockPool, SharedPickle, attach, d
                                               from_shared, to_shared)
 from lidar_obstacles.ros import messages
 from lidar_obstacles.ros.stages import (DemStage, DetectorStage, DetectorWork, Pose,
-                                        moving_frame_warning, pose_of_odometry)
+                                        coarse_xyz_warning, moving_frame_warning,
+                                        pose_of_odometry)
 
 STRING = "std_msgs/msg/String"
 
@@ -464,7 +465,7 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
 
     # the stamps the bag spans: a bag's stamps may go back (its duration came out negative)
     lo_ns = hi_ns = last_ns = None
-    warned = False  # (the moving-frame warning, once)
+    warned: set[int] = set()  # (each warning once)
     n_clouds = reader.count([cloud_topic])
     bar = _progress(None, n_clouds, desc)
     t_start = time.perf_counter()
@@ -485,11 +486,12 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
             last_ns = stamp_ns
             stamps.append(stamp_ns * 1e-9)
             pose = poses.nearest(stamp_ns, max_age)
-            if not warned:
-                warning = moving_frame_warning(msg.header.frame_id, pose, use_odom)
-                if warning is not None:
+            for kind, warning in enumerate((
+                    moving_frame_warning(msg.header.frame_id, pose, use_odom),
+                    detector and coarse_xyz_warning(msg, pose, detector.cfg))):
+                if warning and kind not in warned:
                     bar.write(f"{desc}: warning: {warning}", file=sys.stderr)
-                    warned = True
+                    warned.add(kind)
             if use_odom and pose is None:
                 stats.rejected += 1
                 stats.reject_reasons[NO_POSE] = stats.reject_reasons.get(NO_POSE, 0) + 1

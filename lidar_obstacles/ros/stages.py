@@ -12,14 +12,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from lidar_obstacles.config import (CloudSimplifierConfig, DemBuilderConfig,
-                                    ObstacleDetectorConfig)
+from lidar_obstacles.config import (CloudSimplifierConfig, DemBuilderConfig, NodeInputConfig,
+                                    ObstacleDetectorConfig, PointsNodeConfig)
 from lidar_obstacles.core.arrays import all_columns
 from lidar_obstacles.core.pipeline import (DemPipeline, GroundStep, ObstacleDetector,
                                            ObstacleResult)
 from lidar_obstacles.errors import CloudFormatError
-from lidar_obstacles.io.pointcloud2 import (append_fields, read_points, select_points,
-                                            with_xyz, xyz_of)
+from lidar_obstacles.io.pointcloud2 import (FLOAT32, append_fields, read_points,
+                                            select_points, with_xyz, xyz_of)
 from lidar_obstacles.ros import messages
 
 if TYPE_CHECKING:
@@ -80,15 +80,35 @@ class Prepared:
     frame_id: str
 
 
+def coarse_xyz_warning(msg, pose: Pose | None, cfg: NodeInputConfig) -> str | None:
+    """What to say, once, when clouds moved into the odometry frame keep FLOAT32 `x y z`
+    (`odometry_xyz_type: input`) and the vehicle is so far from that frame's origin that
+    FLOAT32 holds the coordinates only to more than a centimetre (beyond 131 km: a UTM
+    frame's, whose northings it holds to 0.5 m). None when all is well."""
+    if (not isinstance(cfg, PointsNodeConfig) or cfg.odometry_xyz_type != "input"
+            or not cfg.use_odometry or pose is None or msg.header.frame_id == pose.frame_id):
+        return None
+    if not any(f.name in ("x", "y", "z") and f.datatype == FLOAT32 for f in msg.fields):
+        return None
+    far = float(np.max(np.abs(pose.position)))
+    step = float(np.spacing(np.float32(far)))
+    if step <= 0.01:
+        return None
+    return (f"the clouds are moved into '{pose.frame_id}', {far:.0f} m from its origin"
+            f", and keep their FLOAT32 x y z (odometry_xyz_type: input), "
+            f"which there hold a position only to {step:g} m; set odometry_xyz_type: "
+            "float64, or give odometry in a local frame")
+
+
 def prepare(msg, *, keep_non_finite: bool, max_points: int, pose: Pose | None,
-            transform: bool) -> Prepared:
+            transform: bool, widen_xyz: bool = False) -> Prepared:
     """Decode a PointCloud2 and, when `transform`, move it into the pose's frame (a
     cloud already in that frame, the odometry's `header.frame_id`, passes unchanged).
 
     Raises CloudFormatError for malformed or oversize clouds. Non-finite points are dropped
     unless `keep_non_finite`; kept ones stay in the output but are never ground. A moved
-    cloud's points carry x, y, z as FLOAT64 (`with_xyz`: FLOAT32 holds a UTM northing only
-    to 0.5 m).
+    cloud's points keep the types of their fields, or carry x, y, z as FLOAT64 with
+    `widen_xyz` (`with_xyz`); `xyz` is float64 either way, and is what is classified.
     """
     n_in = int(msg.width) * int(msg.height)
     if n_in > max_points:
@@ -99,7 +119,7 @@ def prepare(msg, *, keep_non_finite: bool, max_points: int, pose: Pose | None,
     frame = msg.header.frame_id
     if transform and pose is not None and frame != pose.frame_id:
         xyz = xyz @ pose.rotation().T + pose.position
-        points = with_xyz(points, xyz)
+        points = with_xyz(points, xyz, widen=widen_xyz)
         frame = pose.frame_id
     return Prepared(points, xyz, messages.stamp_ns_of(msg.header), frame)
 
@@ -109,7 +129,8 @@ def prepare_for(msg, cfg: ObstacleDetectorConfig, pose: Pose | None
     """`prepare` with the detector's input settings, and which points are finite, (N,)
     bool."""
     prep = prepare(msg, keep_non_finite=cfg.input.keep_non_finite,
-                   max_points=cfg.input.max_points, pose=pose, transform=cfg.use_odometry)
+                   max_points=cfg.input.max_points, pose=pose, transform=cfg.use_odometry,
+                   widen_xyz=cfg.odometry_xyz_type == "float64")
     return prep, all_columns(np.isfinite(prep.xyz))
 
 
@@ -316,7 +337,8 @@ class SimplifierStage:
         cfg = self.cfg
         t0 = time.perf_counter()
         prep = prepare(msg, keep_non_finite=False, max_points=cfg.input.max_points,
-                       pose=pose, transform=cfg.use_odometry)
+                       pose=pose, transform=cfg.use_odometry,
+                       widen_xyz=cfg.odometry_xyz_type == "float64")
         points = prep.points
         result = simplify(prep.xyz, cfg=cfg.simplify,
                           intensity=_attr(points, "intensity"),
