@@ -221,7 +221,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> dict:
+    from lidar_obstacles.io.atomic import check_not_input
     from lidar_obstacles.ros import offline
+
+    src = getattr(args, "src", None)
+    inputs = [*(src if isinstance(src, list) else [src] if src is not None else []),
+              *([args.params_file] if getattr(args, "params_file", None) else [])]
+    for out in (getattr(args, "out", None), getattr(args, "report", None)):
+        if out is not None:
+            check_not_input(out, inputs)  # before any work: one line, exit 2
 
     if args.command == "simulate":
         return offline.simulate(args.out, scene=args.scene, seed=args.seed,

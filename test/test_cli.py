@@ -173,3 +173,26 @@ def test_run_with_python_m_a_ctrl_c_inside_an_exec_still_exits_130(tmp_path):
                           cwd=REPO, env=stop_inside_exec("numpy", tmp_path), capture_output=True,
                           text=True, timeout=120)
     assert (proc.returncode, proc.stderr) == (130, "lidar-obstacles: interrupted\n")
+
+
+@pytest.mark.parametrize("args", [
+    ["replay", "{bag}", "{bag}"], ["replay", "{bag}/bag_0.mcap", "{bag}"],
+    ["simplify", "{bag}", "{tmp}/./bag"], ["features", "{las}", "{las}"],
+    ["simplify", "{las}", "{tmp}/link.laz"], ["evaluate", "{bag}", "--report", "{bag}"],
+    ["replay", "{bag}", "{tmp}/params.yaml", "--params-file", "{tmp}/params.yaml"]])
+def test_an_output_that_is_the_input_is_refused_before_any_work(args, tmp_path, capsys):
+    # `replay b b` replaced the bag with its own output, `simplify s.laz s.laz` the survey
+    # with 6 842 of its points: exit 0, the input gone
+    bag = tmp_path / "bag"
+    assert main(["simulate", str(bag), "--duration", "0.1", "--points", "300"]) == 0
+    las = _las_file(tmp_path / "s.laz")
+    (tmp_path / "link.laz").symlink_to(las)
+    (tmp_path / "params.yaml").write_text("/**:\n  ros__parameters: {}\n")
+    capsys.readouterr()
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    argv = [a.format(bag=bag, las=las, tmp=tmp_path) for a in args]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"lidar-obstacles {args[0]}: error: ") and err.count("\n") == 1
+    assert "is the input" in err and err.endswith(": not overwriting it\n")
+    assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before

@@ -79,6 +79,20 @@ def check_replaceable(path: str | Path, kind: Kind) -> None:
     raise OutputError(f"{path} exists and is not {kind.name}: not overwriting it")
 
 
+def check_not_input(out: str | Path, inputs: list[str | Path]) -> None:
+    """Raise OutputError when `out` is one of `inputs` (the same file or folder, by any
+    name: a link, a relative path) or a folder holding one (a bag's folder and its .mcap):
+    writing it would destroy what is being read."""
+    out_path = Path(os.path.abspath(out))
+    for src in inputs:
+        src_path = Path(os.path.abspath(src))
+        same = out_path.resolve() == src_path.resolve() or (
+            out_path.exists() and src_path.exists() and os.path.samefile(out_path, src_path))
+        if same or out_path.resolve() in src_path.resolve().parents:
+            raise OutputError(f"{out} is the input {src}"
+                              f"{'' if same else ' (it holds it)'}: not overwriting it")
+
+
 def partial_prefix(path: Path) -> str:
     """The start of the name of this process's temporary outputs of `path`:
     ``.NAME.partial-PID`` (a bag folder's whole name; a file or report folder's is followed
