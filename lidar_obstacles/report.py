@@ -851,6 +851,25 @@ def _classes_html(sec: Mapping[str, Any]) -> str:
     return "".join(out)
 
 
+# what _classes_html shows of an evaluate_classes result
+_CLASS_KEYS = ("n_points", "groups", "confusion", "overall_accuracy", "kappa", "per_class",
+               "ground_object", "blocks", "safety")
+
+
+def _sections(metrics: dict[str, Any]) -> dict[str, Any]:
+    """The report's sections. `evaluate`'s figures come flat, the classes' beside the
+    input's, the DEM's and the latency's: its classes make one section (the headline
+    cards, the confusion matrix, the per-class table), its plain values another, each
+    other dict one more. A dict of sections passes as it is."""
+    if not isinstance(metrics.get("confusion"), dict):
+        return metrics
+    classes = {k: metrics[k] for k in _CLASS_KEYS if k in metrics}
+    rest = {k: v for k, v in metrics.items() if k not in classes}
+    plain = {k: v for k, v in rest.items() if not isinstance(v, dict) or k == "reject_reasons"}
+    return {"classes": classes, **({"input": plain} if plain else {}),
+            **{k: v for k, v in rest.items() if k not in plain}}
+
+
 def write_report(
     out_dir: str | Path,
     metrics: Mapping[str, Any],
@@ -865,7 +884,9 @@ def write_report(
         "dem": grid_errors(...), "latency": latency_stats(...)}``; a section that has a
         ``confusion`` key is rendered as classification tables (headline figures,
         confusion matrix, per-class table), any other as a metric/value/meaning table.
-        NumPy values are converted; NaN becomes null.
+        NumPy values are converted; NaN becomes null. `evaluate`'s flat dict (an
+        evaluate_classes result with the input's, the DEM's and the latency's figures beside
+        it) is split into such sections for the page; metrics.json keeps it as given.
     images: caption key -> PNG path, embedded in the given order as base64 data URIs
         (known keys such as ``confusion``, ``block_kappa``, ``errors``, ``dem_error``
         get a standard caption).
@@ -887,7 +908,7 @@ def write_report(
                        f"src='data:image/png;base64,{data}'><figcaption><b>"
                        f"{html.escape(key)}</b> — {html.escape(caption)}</figcaption></figure>")
     sections = []
-    for name, sec in clean.items():
+    for name, sec in _sections(clean).items():
         sections.append(f"<h2>{html.escape(str(name))}</h2>")
         if isinstance(sec, dict) and "confusion" in sec:
             sections.append(_classes_html(sec))

@@ -67,8 +67,15 @@ def test_evaluate_replay_output_and_report(tmp_path):
     for png in ("confusion", "block_kappa", "classes", "errors", "dem_hillshade"):
         assert (tmp_path / "report" / f"{png}.png").stat().st_size > 5000, png
     assert html.count("data:image/png;base64,") >= 5
+    # the classes as tables (each key of the flat figures was a one-row section before,
+    # and neither the headline nor the confusion matrix was on the page)
+    assert "class='headline'" in html and "<h3>Confusion matrix" in html
+    assert "<h3>Per class</h3>" in html and html.count("<h2>") <= 6
+    from lidar_obstacles.report import _thousands
+
+    assert f"<td>{_thousands(max(max(row) for row in m['confusion']['matrix']))}</td>" in html
     metrics = json.loads((tmp_path / "report" / "metrics.json").read_text())
-    assert metrics["n_points"] == m["n_points"]
+    assert metrics["n_points"] == m["n_points"] and "confusion" in metrics  # flat, as stdout
 
 
 def test_evaluate_a_sensor_frame_bag_through_its_odometry(tmp_path):
