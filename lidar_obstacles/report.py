@@ -293,16 +293,17 @@ def error_categories(reference: Any, predicted: Any) -> np.ndarray:
     """Per point: 0 correct, 1 Type I, 2 Type II, 3 other error (see :data:`ERROR_STYLE`).
 
     reference, predicted: (N,) ASPRS codes, compared by evaluation group
-    (:func:`lidar_obstacles.core.metrics.group_of`). Type I: reference ground predicted as
-    object; Type II: reference object predicted as ground; other: an object given the
-    wrong object group. Returns (N,) int8.
+    (:func:`lidar_obstacles.core.metrics.compared_groups`). Type I: reference ground
+    predicted as object; Type II: reference object predicted as ground; other: an object
+    given the wrong object group (never, against a reference that classes no object).
+    Returns (N,) int8.
     """
-    from lidar_obstacles.core.metrics import GROUP_GROUND, group_of
+    from lidar_obstacles.core.metrics import GROUP_GROUND, compared_groups
 
-    ref = group_of(reference)
-    pred = group_of(predicted)
-    if ref.shape != pred.shape:
-        raise CloudFormatError(f"reference {ref.shape} and prediction {pred.shape} differ")
+    if np.shape(reference) != np.shape(predicted):
+        raise CloudFormatError(f"reference {np.shape(reference)} and prediction "
+                               f"{np.shape(predicted)} differ")
+    ref, pred, _ = compared_groups(reference, predicted)
     cat = np.zeros(ref.size, dtype=np.int8)
     wrong = ref != pred
     cat[wrong & (ref == GROUP_GROUND)] = 1
@@ -807,6 +808,11 @@ def _classes_html(sec: Mapping[str, Any]) -> str:
     if safety.get("obstacle_as_ground") is not None:
         cards.append(("wires/towers taken as ground",
                       _fmt("obstacle_as_ground", safety.get("obstacle_as_ground"))))
+    if sec.get("reference_classes_objects") is False:
+        out.append("<p class='x'>The reference tells ground from object only (its objects "
+                   "are ASPRS 0 or 1, as ISPRS's): the predicted objects count as "
+                   "<i>other</i>, and the figures over all classes are those of ground "
+                   "and object.</p>")
     out.append("<div class='headline'>" + "".join(
         f"<div class='card'><div class='v'>{v}</div><div class='l'>{html.escape(label)}</div></div>"
         for label, v in cards) + "</div>")
@@ -852,7 +858,7 @@ def _classes_html(sec: Mapping[str, Any]) -> str:
 
 
 # what _classes_html shows of an evaluate_classes result
-_CLASS_KEYS = ("n_points", "groups", "confusion", "overall_accuracy", "kappa", "per_class",
+_CLASS_KEYS = ("n_points", "groups", "reference_classes_objects", "confusion", "overall_accuracy", "kappa", "per_class",
                "ground_object", "blocks", "safety")
 
 

@@ -170,6 +170,26 @@ def test_real_isprs_perfect_and_flipped():
     json.dumps(r, allow_nan=False)
 
 
+def test_a_reference_of_ground_and_object_only_judges_no_object_class():
+    # ISPRS labels objects 0: a tree or a roof found was "wrong" against it, and samp11
+    # scored overall accuracy 0.55, kappa 0.31, for total error 8.5 %, kappa 0.83
+    from lidar_obstacles.report import error_categories
+
+    ref = np.array([2, 2, 2, 0, 0, 0, 1, 0])
+    pred = np.array([2, 2, 5, 5, 6, 2, 14, 1])
+    r = M.evaluate_classes(ref, pred)
+    assert r["reference_classes_objects"] is False
+    assert r["overall_accuracy"] == pytest.approx(1.0 - r["ground_object"]["total_error"])
+    assert r["kappa"] == pytest.approx(r["ground_object"]["kappa"])
+    assert error_categories(ref, pred).tolist() == [0, 0, 1, 0, 0, 2, 0, 0]
+    # one classed object in the reference, and the classes are judged again
+    ref[3] = 5
+    r = M.evaluate_classes(ref, pred)
+    assert r["reference_classes_objects"] is True and r["per_class"]["vegetation"][
+        "producers_accuracy"] == 1.0
+    assert error_categories(ref, pred).tolist() == [0, 0, 1, 0, 3, 2, 3, 0]
+
+
 def test_type_i_and_type_ii_are_not_interchangeable():
     # 4 reference ground, 6 reference object; 1 ground rejected (Type I error), 3 objects
     # accepted as ground (Type II error). Unequal on purpose: with 1 and 1 of 5 and 5 (the
