@@ -15,7 +15,7 @@ import signal
 import sys
 from pathlib import Path
 
-from lidar_obstacles.errors import LidarObstaclesError  # (imports only re)
+from lidar_obstacles.errors import ConfigError, LidarObstaclesError  # (imports only re)
 
 SCENES = ("mixed", "corridor", "urban", "forest")
 
@@ -259,6 +259,12 @@ def run(args: argparse.Namespace) -> dict:
         from lidar_obstacles import evaluate
 
         if args.benchmark == "isprs":
+            unused = [flag for flag, given in (
+                ("--report", args.report is not None), ("--blocks", args.blocks != "6x6"),
+                ("--topic", args.topic is not None), ("--no-dem", args.no_dem)) if given]
+            if unused:  # (they were ignored)
+                raise ConfigError(f"--benchmark isprs takes only --params-file, not "
+                                  f"{', '.join(unused)}")
             result = evaluate.benchmark_isprs(args.src, params_file=args.params_file)
             print(evaluate.isprs_table(result), file=sys.stderr)
             return result

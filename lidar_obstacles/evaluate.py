@@ -161,7 +161,11 @@ def _labelled_clouds(reader, topic: str | None, cfg: NodeInputConfig,
             first = first or (f"cloud {seen} (stamp {stamp_ns // 10**9}."
                               f"{stamp_ns % 10**9:09d} s): {exc}")
             continue
-        cloud.predicted = None  # a labelled input bag: the pipeline runs on it
+        if cloud.predicted is not None:  # (it was scored, re-run on half a scan: kappa 0.12)
+            raise BagError(
+                f"{cloud_topic} of {reader.path} is a detector's output (its points have a "
+                "'class' field), not a labelled scan: without --topic, `evaluate` scores a "
+                "replay's /ground and /obstacles together")
         cloud.vehicle = pose.position if pose is not None else None
         clouds.append(cloud)
     if not clouds and malformed:

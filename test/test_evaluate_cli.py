@@ -266,6 +266,30 @@ def test_evaluate_isprs_benchmark_needs_a_folder_of_all_samples(tmp_path):
         "samp12-utm.laz, samp21-utm.laz, ")
 
 
+def test_evaluate_isprs_benchmark_says_the_options_it_does_not_take(tmp_path, capsys):
+    # --report, --blocks, --topic and --no-dem were ignored, exit 0 and no report
+    from lidar_obstacles.cli import main
+
+    assert main(["evaluate", "--benchmark", "isprs", str(tmp_path), "--report",
+                 str(tmp_path / "rep"), "--no-dem"]) == 2
+    assert capsys.readouterr().err == ("lidar-obstacles evaluate: error: --benchmark isprs "
+                                       "takes only --params-file, not --report, --no-dem\n")
+    assert not (tmp_path / "rep").exists()
+
+
+def test_evaluate_refuses_a_detector_output_topic_taken_for_a_labelled_scan(tmp_path):
+    # `evaluate OUT --topic /obstacles` re-ran the detector on the obstacle half of a
+    # replay and scored it (ground/object kappa 0.12), exit 0
+    run_cli("simulate", tmp_path / "flight", "--duration", "0.3", "--points", "2000")
+    run_cli("replay", tmp_path / "flight", tmp_path / "out", "--no-dem")
+    res = cli_subprocess("evaluate", tmp_path / "out", "--topic", "/obstacles", "--no-dem")
+    assert res.returncode == 2 and res.stderr == (
+        f"lidar-obstacles evaluate: error: /obstacles of {tmp_path / 'out'} is a detector's "
+        "output (its points have a 'class' field), not a labelled scan: without --topic, "
+        "`evaluate` scores a replay's /ground and /obstacles together\n")
+    assert run_cli("evaluate", tmp_path / "out", "--no-dem")["kind"] == "replay_bag"
+
+
 @pytest.mark.slow
 def test_tune_improves_a_mistuned_start_and_the_yaml_loads_in_the_node(tmp_path):
     src = data_file("isprs/samp51-utm.laz")
