@@ -703,11 +703,13 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str, *,
             if not isinstance(params, Mapping):
                 raise ConfigError(f"params file {path}: '{key}' ros__parameters is not a "
                                   "mapping of names to values")
+            try:
+                flat = _flatten_mapping(params)
+            except ConfigError as exc:
+                raise ConfigError(f"params file {path}: {exc}") from None
+            _check_node_section(path, key_s.rsplit("/", 1)[-1], flat)
             if matches:  # (a later section overrides an earlier one, as in ROS)
-                try:
-                    updates.update(_flatten_mapping(params))
-                except ConfigError as exc:
-                    raise ConfigError(f"params file {path}: {exc}") from None
+                updates.update(flat)
         else:
             raise ConfigError(f"params file {path}: '{key}' has no ros__parameters")
     # A file may hold other packages' nodes too, but one with none of ours is a misspelling
@@ -734,6 +736,21 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str, *,
         return replace(base, {k: v for k, v in updates.items() if k in known})
     except ConfigError as exc:
         raise ConfigError(f"params file {path}: {exc}") from None
+
+
+def _check_node_section(path: Path, node: str, params: Mapping[str, Any]) -> None:
+    """ConfigError when the section of one of this package's nodes names a parameter that
+    node does not have: it would be ignored (a `dem.*` under `obstacle_detector:` left the
+    DEM at its default without a word). `/**` sections may mix the nodes' parameters."""
+    if node not in NODE_CONFIGS:
+        return
+    own = {p.name for p in params_of(NODE_CONFIGS[node])}
+    for name in params:
+        if name not in own:
+            owners = [n for n, c in NODE_CONFIGS.items() if name in {p.name for p in params_of(c)}]
+            where = f" (a parameter of {' and '.join(owners)}: put it under that node or /**)" \
+                if owners else ""
+            raise ConfigError(f"params file {path}: {node} has no parameter '{name}'{where}")
 
 
 def _yaml_scalar(value: Any) -> str:

@@ -169,3 +169,21 @@ def test_flatten_roundtrip():
     assert replace(cfg, flat) == cfg
     assert all(dataclasses.is_dataclass(getattr(cfg, f.name)) or f.name in flat
                for f in dataclasses.fields(cfg))
+
+
+def test_a_node_section_with_another_nodes_parameter_is_an_error(tmp_path):
+    # `dem.resolution` under `obstacle_detector:` was ignored: the DEM ran at 1 m
+    from lidar_obstacles.config import DemBuilderConfig, load_params_file
+
+    wrong = tmp_path / "wrong.yaml"
+    wrong.write_text("obstacle_detector:\n  ros__parameters:\n    dem:\n      resolution: 0.5\n")
+    for cls, node in ((ObstacleDetectorConfig, "obstacle_detector"),
+                      (DemBuilderConfig, "dem_builder")):  # whichever command reads it
+        with pytest.raises(ConfigError, match=r"obstacle_detector has no parameter "
+                           r"'dem.resolution' \(a parameter of dem_builder: put it under that "
+                           r"node or /\*\*\)$"):
+            load_params_file(wrong, cls, node)
+    shared = tmp_path / "shared.yaml"  # /** may mix them; each node takes its own
+    shared.write_text("/**:\n  ros__parameters:\n    dem.resolution: 0.5\n    tiling.size: 40.0\n")
+    assert load_params_file(shared, DemBuilderConfig, "dem_builder").dem.resolution == 0.5
+    assert load_params_file(shared, ObstacleDetectorConfig, "obstacle_detector").tiling.size == 40
