@@ -45,9 +45,11 @@ _TOKENS = r"[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*"
 
 
 def _topic(text: str) -> str:
+    """A topic of a bag, whose names are absolute: `points` is the root namespace's, as a
+    node with no namespace would resolve it (it was not found beside `/points`)."""
     if not re.fullmatch(rf"/?{_TOKENS}", text):
         raise argparse.ArgumentTypeError(f"{text!r} is not a valid ROS 2 topic name")
-    return text
+    return text if text.startswith("/") else "/" + text
 
 
 def _frame_id(text: str) -> str:

@@ -196,3 +196,23 @@ def test_an_output_that_is_the_input_is_refused_before_any_work(args, tmp_path, 
     assert err.startswith(f"lidar-obstacles {args[0]}: error: ") and err.count("\n") == 1
     assert "is the input" in err and err.endswith(": not overwriting it\n")
     assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+
+
+def test_a_topic_named_relative_is_the_root_namespaces(tmp_path, capsys):
+    # `--topic points` was "no PointCloud2 topic 'points' (it has: /points)"
+    bag = tmp_path / "bag"
+    assert main(["simulate", str(bag), "--duration", "0.1", "--points", "300"]) == 0
+    assert main(["replay", str(bag), str(tmp_path / "out"), "--topic", "points",
+                 "--no-dem"]) == 0
+    assert '"topic": "/points"' in capsys.readouterr().out
+
+
+def test_play_names_the_topics_the_bag_lacks(tmp_path, capsys):
+    # `play --topics /points /pointz` dropped the misspelt one, exit 0
+    bag = tmp_path / "bag"
+    assert main(["simulate", str(bag), "--duration", "0.1", "--points", "300"]) == 0
+    capsys.readouterr()
+    assert main(["play", str(bag), "--topics", "/points", "/pointz"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"lidar-obstacles play: error: bag {bag} has no topic /pointz "
+                          "(it has: ") and "/points" in err and err.count("\n") == 1

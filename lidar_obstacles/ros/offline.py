@@ -1001,6 +1001,11 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
     if rate <= 0:
         raise BagError("--rate must be positive")
     with BagReader(src) as reader:
+        have = [t.topic for t in reader.topics()]
+        missing = sorted(set(topics or ()) - set(have))
+        if missing:  # (a misspelt one was dropped without a word)
+            raise BagError(f"bag {src} has no topic {', '.join(missing)} (it has: "
+                           f"{', '.join(have) or 'none'})")
         infos = [t for t in reader.topics() if topics is None or t.topic in topics]
         if not infos:
             raise BagError(f"bag {src} has none of the requested topics")
