@@ -640,6 +640,19 @@ def test_corrupt_bag_and_bad_params_exit_2(sim_bag, tmp_path):
     junk.write_bytes(b"\x89MCAP0\r\n" + b"\x00" * 100)
     res = cli_subprocess("replay", junk, tmp_path / "o")
     assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1
+    # a record's length field overwritten: Python's own "int too large to convert to C
+    # ssize_t" came through
+    import shutil
+
+    shutil.copytree(sim_bag, tmp_path / "garbled")
+    (mcap,) = (tmp_path / "garbled").glob("*.mcap")
+    data = bytearray(mcap.read_bytes())
+    data[100:116] = b"\xff" * 16
+    mcap.write_bytes(bytes(data))
+    res = cli_subprocess("replay", tmp_path / "garbled", tmp_path / "o")
+    assert res.returncode == 2 and res.stderr == (
+        f"lidar-obstacles replay: error: bag {tmp_path / 'garbled'} is truncated or corrupt: "
+        "a record's length is out of range\n")
     params = tmp_path / "bad.yaml"
     params.write_text("/**:\n  ros__parameters:\n    ransac:\n      distance_threshold: -3.0\n")
     res = cli_subprocess("replay", sim_bag, tmp_path / "o", "--params-file", params)

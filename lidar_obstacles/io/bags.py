@@ -184,6 +184,8 @@ class BagReader:
             raise
         except Exception as exc:
             text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            if isinstance(exc, (OverflowError, MemoryError)):  # Python's, not the reader's
+                text = "a record's length is out of range"
             raise BagError(f"bag {self.path} is truncated or corrupt: {text}") from None
 
 
