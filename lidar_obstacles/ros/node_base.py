@@ -15,6 +15,7 @@ import sys
 import threading
 import time
 import traceback
+from pathlib import Path
 from typing import Any, Callable
 
 import rclpy
@@ -393,6 +394,20 @@ class StopSignals:
             signal.signal(sig, handler)
 
 
+def _missing_params_file(argv: list[str]) -> str | None:
+    """The first `--params-file PATH` of the --ros-args in `argv` that is not a file."""
+    inside = False
+    for arg, nxt in zip(argv, [*argv[1:], None]):
+        if arg == "--ros-args":
+            inside = True
+        elif arg == "--":
+            inside = False
+        elif inside and arg == "--params-file" and nxt is not None \
+                and not Path(nxt).is_file():
+            return nxt
+    return None
+
+
 def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
     """Jazzy-style main: init, spin, and on SIGINT/SIGTERM destroy the node and shut down.
 
@@ -411,11 +426,16 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
     # node that does not stop, or stalls (it keeps running).
     faulthandler.enable(all_threads=True)
     faulthandler.register(signal.SIGUSR1, all_threads=True)
+    argv = args if args is not None else sys.argv
+    program = Path(sys.argv[0]).stem or "node"
+    missing = _missing_params_file(argv)
+    if missing is not None:  # said here: rcl would add a line of its own ("[ERROR] [rcl]")
+        print(f"{program}: error: params file {missing} not found", file=sys.stderr)
+        return 2
     try:
-        rclpy.init(args=args if args is not None else sys.argv,
-                   signal_handler_options=SignalHandlerOptions.NO)
-    except RCLError as exc:  # a --ros-args mistake: a params file that is missing or bad
-        print(f"error: {str(exc).split(', at ')[0]}", file=sys.stderr)
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    except RCLError as exc:  # a --ros-args mistake: a params file that rcl cannot read
+        print(f"{program}: error: {str(exc).split(', at ')[0]}", file=sys.stderr)
         return 2
     node = None
     executor = SingleThreadedExecutor()  # (after init: it needs the context)
@@ -426,7 +446,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
         while stop.received is None:
             executor.spin_once()
     except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"{program}: error: {exc}", file=sys.stderr)
         return 2
     except ExternalShutdownException:
         pass

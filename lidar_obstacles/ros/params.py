@@ -46,6 +46,20 @@ def descriptor(info: ParamInfo) -> ParameterDescriptor:
     return d
 
 
+def _refusal(info: ParamInfo, given: Parameter | None, exc: Exception) -> str:
+    """One line on an override rclpy refused: the name, the value and the rule it broke
+    (rclpy's own text said the name three times and the value twice)."""
+    value = f" = {given.value!r}" if given is not None else ""
+    if "out of range" in str(exc) or "InvalidParameterValue" in type(exc).__name__:
+        unit = f" {info.spec.unit}" if info.spec.unit and info.spec.unit != "1" else ""
+        return f"parameter '{info.name}'{value}: not in its {info.spec.range_text()}{unit}"
+    if "expecting type" in str(exc):
+        kind = {float: "a number", int: "an integer", bool: "true or false",
+                str: "a string"}.get(info.type, info.type.__name__)
+        return f"parameter '{info.name}'{value}: not {kind}"
+    return f"parameter '{info.name}'{value}: {str(exc).splitlines()[0]}"
+
+
 def declare_config(node: Node, cls: type) -> Any:
     """Declare every parameter of `cls` on `node` and return the validated config.
 
@@ -64,7 +78,7 @@ def declare_config(node: Node, cls: type) -> Any:
         try:
             param = node.declare_parameter(info.name, info.default, descriptor(info))
         except Exception as exc:  # rclpy raises its own types for type and range errors
-            raise ConfigError(f"parameter '{info.name}': {exc}".splitlines()[0]) from None
+            raise ConfigError(_refusal(info, overrides.get(info.name), exc)) from None
         values[info.name] = param.value
     # As `load_params_file`: a shared params file may carry another node's parameters,
     # but a name no node knows is a typo the user must hear of, not a silent default.
