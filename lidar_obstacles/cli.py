@@ -105,7 +105,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0, help="random seed of the scene and flight")
 
     s = sub.add_parser("simulate", help="write a labelled synthetic UAV flight bag")
-    s.add_argument("out", type=Path, metavar="OUT_BAG")
+    s.add_argument("out", type=Path, metavar="OUT_BAG",
+                   help="the bag to write (a folder; mcap unless --storage sqlite3)")
     s.add_argument("--seed", type=int, default=0, help="random seed of the scene and flight")
     s.add_argument("--scene", choices=SCENES, default="mixed", help="simulated scene")
     s.add_argument("--duration", type=_positive, default=20.0, help="seconds of flight")
@@ -119,8 +120,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rosbag2 storage of the output bag")
 
     s = sub.add_parser("las2bag", help="stream a LAS/LAZ survey as PointCloud2 messages")
-    s.add_argument("src", type=Path, metavar="IN.las")
-    s.add_argument("out", type=Path, metavar="OUT_BAG")
+    s.add_argument("src", type=Path, metavar="IN.las",
+                   help="the survey, a LAS or LAZ file")
+    s.add_argument("out", type=Path, metavar="OUT_BAG",
+                   help="the bag to write")
     s.add_argument("--slice-seconds", type=_between(1e-3, 1e5), default=0.1,
                    help="GPS-time slice per message (and stamp spacing otherwise)")
     s.add_argument("--tile-size", type=_between(0.1, 1e6), default=None,
@@ -135,8 +138,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rosbag2 storage of the output bag")
 
     s = sub.add_parser("replay", help="run the pipeline offline on every cloud of a bag")
-    s.add_argument("src", type=Path, metavar="IN_BAG")
-    s.add_argument("out", type=Path, metavar="OUT_BAG")
+    s.add_argument("src", type=Path, metavar="IN_BAG",
+                   help="a bag of PointCloud2 scans (rosbag2 mcap or sqlite3, or ROS 1 .bag)")
+    s.add_argument("out", type=Path, metavar="OUT_BAG",
+                   help="the bag of what the nodes would publish")
     s.add_argument("--topic", type=_topic, default=None,
                    help="PointCloud2 topic (default: the only/biggest)")
     s.add_argument("--params-file", type=Path, default=None,
@@ -146,7 +151,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-dem", action="store_true", help="skip the DEM builder")
 
     s = sub.add_parser("play", help="publish a bag into the live ROS graph")
-    s.add_argument("src", type=Path, metavar="IN_BAG")
+    s.add_argument("src", type=Path, metavar="IN_BAG",
+                   help="the bag to publish")
     s.add_argument("--rate", type=_between(0.001, 1000.0), default=1.0, help="speed factor")
     s.add_argument("--loop", action="store_true",
                    help="start again from the beginning at the end, until Ctrl-C")
@@ -157,8 +163,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "topic names)")
 
     s = sub.add_parser("export-dem", help="build the DEM of a bag and write a GeoTIFF")
-    s.add_argument("src", type=Path, metavar="IN_BAG")
-    s.add_argument("out", type=Path, metavar="OUT.tif")
+    s.add_argument("src", type=Path, metavar="IN_BAG",
+                   help="a bag of PointCloud2 scans")
+    s.add_argument("out", type=Path, metavar="OUT.tif",
+                   help="the GeoTIFF to write (a hillshade PNG goes beside it)")
     s.add_argument("--topic", type=_topic, default=None,
                    help="PointCloud2 topic (default: the only/biggest)")
     s.add_argument("--params-file", type=Path, default=None,
