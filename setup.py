@@ -26,7 +26,7 @@ setup(
             "obstacle_detector = lidar_obstacles.scripts.obstacle_detector:main",
             "dem_builder = lidar_obstacles.scripts.dem_builder:main",
             "cloud_simplifier = lidar_obstacles.scripts.cloud_simplifier:main",
-            "lidar-obstacles = lidar_obstacles.cli:main",
+            "lidar-obstacles = lidar_obstacles.cli:console",
         ],
     },
 )

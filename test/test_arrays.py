@@ -113,3 +113,39 @@ def test_distinct_points_are_numpys_unique_rows_in_order_of_first_occurrence(rep
     assert np.array_equal(xyz[first][inverse], xyz)
     assert distinct_points(np.array([[0.0, -0.0, 1.0], [0.0, 0.0, 1.0]]))[0].tolist() == [0]
     assert distinct_points(np.zeros((1, 3))) is None
+
+
+def test_a_stop_signal_during_a_threaded_query_waits_for_it_to_end():
+    # SciPy joins a parallel query's threads in Python: a Ctrl-C raised in the join left
+    # them writing into freed arrays, and `evaluate` segfaulted after "interrupted"
+    import os
+    import signal
+    import threading
+
+    from scipy.spatial import cKDTree
+
+    from lidar_obstacles.core.arrays import stop_signals_held, tree_query
+
+    rng = np.random.default_rng(0)
+    data, query = rng.random((200_000, 3)), rng.random((200_000, 3))
+    tree = cKDTree(data)
+    expected = tree.query(query, k=8)
+    assert np.array_equal(tree_query(tree, query, k=8, workers=-1)[1], expected[1])
+    timer = threading.Timer(0.02, os.kill, (os.getpid(), signal.SIGINT))
+    timer.start()
+    with pytest.raises(KeyboardInterrupt):
+        tree_query(tree, query, k=8, workers=-1)  # the Ctrl-C comes inside it
+        # (only when it has ended, so that no thread of SciPy's is still writing)
+    timer.join()
+    assert [t for t in threading.enumerate() if t is not threading.main_thread()] == []
+    # held and delivered once, to the handler that was there before
+    seen = []
+    before = signal.signal(signal.SIGTERM, lambda s, f: seen.append(s))
+    try:
+        with stop_signals_held():
+            os.kill(os.getpid(), signal.SIGTERM)
+            os.kill(os.getpid(), signal.SIGTERM)
+            assert seen == []
+        assert seen == [signal.SIGTERM]
+    finally:
+        signal.signal(signal.SIGTERM, before)

@@ -122,7 +122,7 @@ def test_a_reader_that_stops_early_ends_the_command_quietly(args, tmp_path):
 
 
 # What pip's console script `lidar-obstacles` runs (where it is not installed)
-CONSOLE_SCRIPT = "import sys\nfrom lidar_obstacles.cli import main\nsys.exit(main())\n"
+CONSOLE_SCRIPT = "import sys\nfrom lidar_obstacles.cli import console\nsys.exit(console())\n"
 
 
 @pytest.mark.parametrize("delay", [0.0, 0.01, 0.03, 0.1, 0.3])

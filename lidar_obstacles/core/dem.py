@@ -22,7 +22,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from lidar_obstacles.config import DemBuilderConfig, KrigingConfig, ThinningConfig
-from lidar_obstacles.core.arrays import all_columns, column_min, unique_ints
+from lidar_obstacles.core.arrays import all_columns, column_min, tree_query, unique_ints
 from lidar_obstacles.core.interpolate import (Variogram, degeneracy, interpolate,
                                               kriging_variogram, merge_coincident)
 from lidar_obstacles.errors import CloudFormatError, ConfigError
@@ -314,7 +314,7 @@ def ground_blunders(xyz: np.ndarray, *, max_area: float, rise: float,
         return np.zeros(len(xyz), bool)
     centre = np.column_stack([cells % cols, cells // cols]).astype(np.float64)
     k = min(_PATCH_NEIGHBOURS, int(main.sum()))
-    _, nearest = cKDTree(centre[main]).query(centre[~main], k=k, workers=-1)
+    _, nearest = tree_query(cKDTree(centre[main]), centre[~main], k=k, workers=-1)
     around = zmin[main][nearest.reshape(-1, k)]
     top, bottom = zmin.copy(), zmin.copy()  # per cell: the main surface around it
     top[~main], bottom[~main] = around.max(axis=1), around.min(axis=1)

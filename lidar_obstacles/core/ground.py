@@ -76,7 +76,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from lidar_obstacles.config import GroundConfig, RansacConfig, TilingConfig, TinConfig
 from lidar_obstacles.core.arrays import (all_columns, cell_index, column_max, column_min,
-                                         points_xyz, snap_micrometres)
+                                         points_xyz, snap_micrometres, tree_query)
 from lidar_obstacles.core.ransac import ransac_plane
 from lidar_obstacles.errors import CloudFormatError
 
@@ -1485,7 +1485,7 @@ class GroundSurface:
                                         self.xyz[self.tri.simplices[s[inside]], 2])
                 todo = ~inside
         if todo.any():
-            _, nn = self.tree.query(xy[todo], workers=-1)
+            _, nn = tree_query(self.tree, xy[todo], workers=-1)
             out[todo] = self.xyz[nn, 2]
         return out
 

@@ -32,6 +32,7 @@ from scipy.linalg import solve_triangular
 from scipy.optimize import least_squares
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
+from lidar_obstacles.core.arrays import tree_query
 from lidar_obstacles.config import KrigingConfig, RbfConfig, RbfnnConfig
 from lidar_obstacles.errors import CloudFormatError
 
@@ -175,7 +176,7 @@ def idw(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray, *, neighbours: int 
     if len(xy) == 0:
         return np.full(len(query_xy), np.nan)
     k = min(neighbours, len(xy))
-    d, idx = cKDTree(xy).query(query_xy, k=k, workers=-1)
+    d, idx = tree_query(cKDTree(xy), query_xy, k=k, workers=-1)
     d, idx = d.reshape(len(query_xy), k), idx.reshape(len(query_xy), k)
     w = 1.0 / np.maximum(d, 1e-12) ** power
     exact = d[:, 0] <= 1e-12
@@ -304,7 +305,7 @@ def _blocks(xy: np.ndarray, query_xy: np.ndarray, k: int) -> _Blocks:
     extent = np.maximum(xy.max(axis=0) - lo_xy, 1e-9)
     spacing = float(np.sqrt(extent[0] * extent[1] / len(xy))) or float(extent.max() / len(xy))
     tree = cKDTree(xy)
-    nearest, _ = tree.query(query_xy, k=1, workers=-1)
+    nearest, _ = tree_query(tree, query_xy, k=1, workers=-1)
     level = np.floor(np.log2(np.maximum(nearest / (2.0 * spacing), 1.0)))
     level = np.minimum(np.nan_to_num(level), _MAX_BLOCK_LEVEL)
     width = spacing * 2.0 ** level
@@ -314,7 +315,7 @@ def _blocks(xy: np.ndarray, query_xy: np.ndarray, k: int) -> _Blocks:
     block = block.ravel()
     centre = np.column_stack([np.bincount(block, weights=query_xy[:, i]) / counts
                               for i in range(2)])
-    dist, sets = tree.query(centre, k=k, workers=-1)
+    dist, sets = tree_query(tree, centre, k=k, workers=-1)
     dist, sets = dist.reshape(len(centre), k), sets.reshape(len(centre), k)
     return _Blocks(block, centre, sets, float(np.median(dist[:, -1])) or 1.0)
 
@@ -613,7 +614,7 @@ def interpolate(method: str, xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray
     inputs, query_inputs = xy, q
     if use_int:
         if query_intensity is None:
-            _, near = cKDTree(xy).query(q, k=1, workers=-1)
+            _, near = tree_query(cKDTree(xy), q, k=1, workers=-1)
             query_intensity = inten[near]
         inputs = np.column_stack([xy, inten])
         query_inputs = np.column_stack([q, np.asarray(query_intensity, dtype=np.float64)])

@@ -30,7 +30,7 @@ from scipy import ndimage
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from lidar_obstacles.config import KmeansConfig
-from lidar_obstacles.core.arrays import points_xyz
+from lidar_obstacles.core.arrays import points_xyz, tree_query
 from lidar_obstacles.core.interpolate import idw, tin
 from lidar_obstacles.errors import CloudFormatError
 
@@ -279,7 +279,7 @@ def geometric_features(xyz: np.ndarray, *, window: float, neighbours: int = 10) 
     """
     n = len(xyz)
     k = int(min(neighbours, n))
-    _, idx = cKDTree(xyz).query(xyz, k=k, workers=-1)
+    _, idx = tree_query(cKDTree(xyz), xyz, k=k, workers=-1)
     idx = idx.reshape(n, k)
     nb = xyz[idx] - xyz[idx].mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", nb, nb) / max(k - 1, 1)

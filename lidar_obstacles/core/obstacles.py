@@ -47,7 +47,7 @@ from scipy.spatial import cKDTree
 
 from lidar_obstacles.config import ClearanceConfig, ObstaclesConfig
 from lidar_obstacles.core.arrays import (all_columns, cell_index, column_max, column_mean,
-                                         column_min, row_norm, unique_ints)
+                                         column_min, row_norm, tree_query, unique_ints)
 from lidar_obstacles.core.classes import (
     BUILDING,
     GROUND,
@@ -337,8 +337,8 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
         asked &= mine
     ask = np.flatnonzero(asked)
     k = min(max_neighbours, v)
-    dist, nn = search_tree(centre).query(at[ask], k=k, distance_upper_bound=radius,
-                                         workers=_workers(len(ask), k))
+    dist, nn = tree_query(search_tree(centre), at[ask], k=k, distance_upper_bound=radius,
+                          workers=_workers(len(ask), k))
     inside = np.isfinite(dist)
     count = inside.sum(axis=1).astype(np.float64)
     # Neighbourhood sums of 1, x, y, z and the six products in one sparse product
@@ -448,8 +448,8 @@ def _isolated(pts: np.ndarray, radius: float, min_neighbours: int) -> np.ndarray
     voxel, count, _ = _voxel_ids(np.floor(pts / edge).astype(np.int64))
     ask = np.flatnonzero(count[voxel] <= min_neighbours)
     if len(ask):
-        dist, _ = search_tree(pts).query(pts[ask], k=min_neighbours + 1,
-                                         distance_upper_bound=radius, workers=_workers(len(ask)))
+        dist, _ = tree_query(search_tree(pts), pts[ask], k=min_neighbours + 1,
+                             distance_upper_bound=radius, workers=_workers(len(ask)))
         isolated[ask] = ~np.isfinite(dist.reshape(len(ask), -1)[:, -1])
     return isolated
 
@@ -971,8 +971,8 @@ def _buildings(xyz: np.ndarray, cand: np.ndarray, shape: LocalShape, allowed: np
         lo, hi = column_min(near) - BUILDING_REACH, column_max(near) + BUILDING_REACH
         pull = np.concatenate([pull, _in_box(known[known[:, 3] > 0, :3], lo, hi)])
     if len(pull):
-        dist, _ = search_tree(pull).query(
-            xyz[cand[others]], distance_upper_bound=BUILDING_REACH, workers=_workers(len(others)))
+        dist, _ = tree_query(search_tree(pull), xyz[cand[others]],
+                             distance_upper_bound=BUILDING_REACH, workers=_workers(len(others)))
         is_building[others[np.isfinite(dist)]] = True
     return is_building, roofs
 
@@ -1454,9 +1454,9 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
         if feet:
             # the ground points right under a tower's legs, not its whole footprint
             ground_ids = np.flatnonzero(classes == GROUND)
-            dist, _ = search_tree(np.concatenate(feet)).query(
-                xyz[ground_ids], distance_upper_bound=TOWER_FOOT_REACH,
-                workers=_workers(len(ground_ids)))
+            dist, _ = tree_query(search_tree(np.concatenate(feet)), xyz[ground_ids],
+                                 distance_upper_bound=TOWER_FOOT_REACH,
+                                 workers=_workers(len(ground_ids)))
             classes[ground_ids[np.isfinite(dist)]] = TOWER
         if is_wire.any():
             w = xyz[cand[is_wire]]
@@ -1506,8 +1506,8 @@ def _wall_feet(xyz: np.ndarray, hag: np.ndarray, low: np.ndarray, walls: np.ndar
                                       & (xyz[low, :2] <= column_max(xyz[walls, :2]) + 1.0)))
     if len(near) == 0:
         return
-    dist, _ = search_tree(xyz[walls, :2]).query(
-        xyz[low[near], :2], distance_upper_bound=WALL_FOOT_REACH, workers=_workers(len(near)))
+    dist, _ = tree_query(search_tree(xyz[walls, :2]), xyz[low[near], :2],
+                         distance_upper_bound=WALL_FOOT_REACH, workers=_workers(len(near)))
     classes[low[near[np.isfinite(dist)]]] = BUILDING
 
 

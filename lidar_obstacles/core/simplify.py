@@ -43,6 +43,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
+from lidar_obstacles.core.arrays import tree_query
 from lidar_obstacles.config import SimplifyConfig
 from lidar_obstacles.core.ground import far_points
 from lidar_obstacles.core.interpolate import tin
@@ -120,7 +121,7 @@ def _neighbourhood_pca(xyz: np.ndarray, neighbours: int) -> np.ndarray:
     n = len(xyz)
     k = int(min(neighbours, n))
     centred = xyz - xyz.mean(axis=0)  # conditioning: survey coordinates are 1e5-1e6 m
-    _, idx = cKDTree(centred).query(centred, k=k, workers=-1)
+    _, idx = tree_query(cKDTree(centred), centred, k=k, workers=-1)
     idx = np.asarray(idx).reshape(n, k)
     normals = np.empty((n, 3))
     rows, cols = np.triu_indices(3)
