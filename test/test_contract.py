@@ -4,6 +4,7 @@ the topics, services and types of the running nodes. When the page changes, this
 no longer matches."""
 from __future__ import annotations
 
+import importlib
 import re
 import signal
 import subprocess
@@ -37,7 +38,9 @@ def test_every_executable_is_installed_as_a_console_script(contract):
     assert {"obstacle_detector", "dem_builder", "lidar-obstacles"} <= set(names)
     setup = (REPO / "setup.py").read_text()
     for name in names:
-        assert re.search(rf'"{re.escape(name)} = lidar_obstacles\.[\w.]+:main"', setup), name
+        entry = re.search(rf'"{re.escape(name)} = (lidar_obstacles\.[\w.]+):(\w+)"', setup)
+        assert entry, name
+        assert callable(getattr(importlib.import_module(entry[1]), entry[2])), name
 
 
 def test_every_subcommand_and_option_exists(contract):

@@ -198,7 +198,7 @@ def _neighbours(xyz: np.ndarray, k: int) -> np.ndarray:
     The point itself is dropped by index, not by position: with coincident points the
     query may list a twin before it."""
     n = len(xyz)
-    _, idx = tree_query(cKDTree(xyz), xyz, k + 1, workers=-1)
+    _, idx = tree_query(cKDTree(xyz), xyz, k=k + 1, workers=-1)
     keep = idx != np.arange(n)[:, None]
     keep[keep.all(axis=1), -1] = False  # self not listed (k + 1 twins): drop the farthest
     return idx[keep].reshape(n, k)
