@@ -39,7 +39,7 @@ def test_simplify_las_keeps_a_share_of_the_points_with_every_field(tmp_path):
     assert 0.5 < summary["reduction"] < 0.95, summary
     assert kept.points.dtype == full.points.dtype and kept.epsg == full.epsg
     assert _rows(kept.points) <= _rows(full.points)  # a subset, nothing moved
-    assert -1.0 <= summary["r"] <= 1.0
+    assert summary["r"] > 0.9  # the kept points still draw the terrain (0.980)
     assert [p.name for p in tmp_path.iterdir()] == ["simple.laz"]  # no partial file left
 
 

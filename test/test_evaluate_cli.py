@@ -59,10 +59,10 @@ def test_evaluate_replay_output_and_report(tmp_path):
     assert m["kind"] == "replay_bag" and m["clouds"] == 20
     assert m["n_points"] > 100_000
     go = m["ground_object"]
-    assert 0.0 <= go["total_error"] <= 1.0 and go["kappa"] > 0.8
+    assert 0.0 <= go["total_error"] <= 1.0 and go["kappa"] > 0.95  # (0.984)
     assert m["safety"]["n_wire"] + m["safety"]["n_tower"] > 0
     assert m["safety"]["obstacle_as_ground"] < 0.01
-    assert m["dem"]["grid"]["rmse_m"] is not None
+    assert m["dem"]["grid"]["rmse_m"] < 0.1  # (0.006 m)
     html = (tmp_path / "report" / "report.html").read_text()
     for png in ("confusion", "block_kappa", "classes", "errors", "dem_hillshade"):
         assert (tmp_path / "report" / f"{png}.png").stat().st_size > 5000, png
@@ -238,7 +238,7 @@ def test_evaluate_las_file():
     m = run_cli("evaluate", data_file("isprs/samp11-utm.laz"), "--no-dem")
     assert m["kind"] == "las" and m["n_points"] == 38010
     assert m["blocks"]["nx"] == 6 and m["blocks"]["n_eligible"] > 10
-    assert m["ground_object"]["kappa"] > 0.7
+    assert m["ground_object"]["kappa"] > 0.8  # (0.825)
     assert m["latency"]["n"] == 1
 
 
@@ -249,7 +249,9 @@ def test_evaluate_isprs_benchmark():
         pytest.skip(f"shared data not present: {folder}")
     res = run_cli("evaluate", "--benchmark", "isprs", folder)
     assert len(res["samples"]) == 15
-    assert 0 < res["mean"]["total_error"] < 0.2
+    # the target, ≤ 4 % and ≥ 0.88 (measured 3.52 %, 0.880): a guard against a
+    # regression here (`tin` as the default, 8.2 %, passed the old "< 20 %")
+    assert 0 < res["mean"]["total_error"] < 0.04 and res["mean"]["kappa"] > 0.87
 
 
 def test_evaluate_isprs_benchmark_needs_a_folder_of_all_samples(tmp_path):

@@ -57,18 +57,6 @@ def test_flat_ground_with_buildings(method):
     np.testing.assert_allclose(res.height_above_ground[len(ground):], 8.0, atol=0.3)
 
 
-def test_slope_and_step():
-    rng = np.random.default_rng(2)
-    slope = _terrain(rng, slope=(0.3, 0.0))  # 17 degrees
-    res = _run(slope)
-    assert res.ground.mean() > 0.97
-    # a 3 m terrain step (embankment) over 2 m stays ground on both levels
-    xy = rng.uniform(0, 80, (20000, 2))
-    z = 100 + np.clip((xy[:, 0] - 40) * 1.5, 0, 3) + rng.normal(0, 0.03, len(xy))
-    res = _run(np.column_stack([xy, z]))
-    assert res.ground.mean() > 0.95
-
-
 def test_rebuild_rounds_restore_a_ridge_crest_the_opening_cuts():
     # An 8 m ridge (Gaussian profile, sigma 8 m) is convex: the opening lowers its crest by
     # more than `slope` per window step, so the first labels miss the crest (about 9 %

@@ -125,7 +125,7 @@ def test_kmeans_ground_picks_ground_automatically(features):
     xyz, inten, truth = _scene(rng)
     found = kmeans_ground(xyz, cfg=KmeansConfig(features=features, restarts=3),
                           intensity=inten)
-    assert found.reason == ""
+    assert found.reason == "" and found.features == features  # (no silent fallback)
     precision = (found.ground & truth).sum() / found.ground.sum()
     recall = (found.ground & truth).sum() / truth.sum()
     assert precision > 0.98 and recall > 0.8, (features, precision, recall)

@@ -162,8 +162,12 @@ def test_nodes_process_a_played_flight(flight, ros_node, tmp_path):
         obst = np.concatenate([read_points(m) for m in got["obstacles"]])
         grnd = np.concatenate([read_points(m) for m in got["ground"]])
         assert set(np.unique(grnd["class"])) == {2}
-        classes = set(np.unique(obst["class"]).tolist())
-        assert classes & {3, 4, 5, 6, 14, 15}, classes
+        # each kind of obstacle the flight saw much of is found (recall 0.97-0.99 replayed)
+        truth = obst["classification"]
+        seen = [c for c in (5, 6, 14, 15) if (truth == c).sum() > 1000]
+        assert seen, np.unique(truth, return_counts=True)
+        for c in seen:
+            assert ((obst["class"] == c) & (truth == c)).sum() > 0.5 * (truth == c).sum(), c
         # the simulator's truth rides along in the output: no wire or tower point in ground
         assert not np.isin(grnd["classification"], (14, 15)).any()
         assert (grnd["classification"] == 2).mean() > 0.95

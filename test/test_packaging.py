@@ -114,6 +114,12 @@ def test_colcon_build_and_installed_node_starts(tmp_path):
     assert exe.is_file()
     site = next((ws / "install" / "lidar_obstacles" / "lib").glob("python*/site-packages"))
     env = dict(os.environ, PYTHONPATH=str(site))
+    # the package comes from the installed tree, not from the checkout (this venv's editable
+    # install would stand in for an install tree that lacks it)
+    where = subprocess.run([sys.executable, "-c", "import lidar_obstacles.ros.obstacle_detector "
+                            "as m; print(m.__file__)"], env=env, cwd=tmp_path,
+                           capture_output=True, text=True, timeout=60)
+    assert Path(where.stdout.strip()).is_relative_to(ws / "install"), where.stdout + where.stderr
     proc = subprocess.Popen([sys.executable, str(exe), "--ros-args", "-p", "tiling.size:=30.0",
                              "--params-file", str(share / "config" / "obstacle_detector.yaml")],
                             cwd=tmp_path, env=env, stdout=subprocess.PIPE,
@@ -130,7 +136,6 @@ def test_colcon_build_and_installed_node_starts(tmp_path):
                 break
         assert any("subscribed to /points" in x for x in lines), "".join(lines)
         assert any("ready" in x for x in lines), "".join(lines)
-        # It runs from the installed tree, not from the source checkout.
         proc.send_signal(signal.SIGINT)
         code = proc.wait(timeout=30)
         assert code == 0, "".join(lines) + proc.stdout.read()

@@ -194,6 +194,7 @@ def test_sensor_frame_transforms_back_with_the_pose():
     kw = dict(scene="corridor", duration=0.5, points_per_frame=8000)
     in_map = _flight(frame="map", **kw)
     in_sensor = _flight(frame="sensor", **kw)
+    assert len(in_map) == len(in_sensor) == 5
     for fm, fs in zip(in_map, in_sensor):
         assert fm.position.tobytes() == fs.position.tobytes()
         ps = np.column_stack([fs.points["x"], fs.points["y"], fs.points["z"]]).astype(float)
