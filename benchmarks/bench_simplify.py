@@ -46,18 +46,16 @@ PAPER = dict(reduction=0.81833, r=0.890, restarts=100, seconds_100_runs=22.392, 
 
 
 def load(rel: str, n: int):
-    """xyz, intensity (None unless real: AHN4 only; ISPRS repeats the label, the corridor
-    has zeros), return numbers (None when not recorded) of the n points nearest (in XY) to
-    the median point: a disc of the file's density."""
+    """xyz (n, 3) m and return numbers (None when not recorded) of the n points nearest (in
+    XY) to the median point: a disc of the file's density."""
     cloud = read_las(DATA / rel)
     xyz, pts = cloud.xyz, cloud.points
     if len(xyz) > n:
         centre = np.median(xyz[:, :2], axis=0)
         pick = np.sort(np.argpartition(np.hypot(*(xyz[:, :2] - centre).T), n - 1)[:n])
         xyz, pts = xyz[pick], pts[pick]
-    inten = pts["intensity"].astype(np.float64) if rel.startswith("ahn4") else None
     ret = pts["return_number"] if pts["return_number"].max() > 0 else None
-    return xyz, inten, ret
+    return xyz, ret
 
 
 def p95_gap(kept: np.ndarray, pts: np.ndarray) -> float:
@@ -72,9 +70,9 @@ def timed(fn):
 
 
 def per_file(rel: str, n: int, cfg: SimplifyConfig, paper_restarts: int) -> tuple[dict, list]:
-    xyz, inten, ret = load(rel, n)
+    xyz, ret = load(rel, n)
     res, seconds = timed(lambda: simplify(xyz, cfg=replace(cfg, method="normal_cluster"),
-                                          intensity=inten, return_number=ret,
+                                          return_number=ret,
                                           rng=np.random.default_rng(0)))
     clustered = res.labels >= 0
     pts, labels = xyz[clustered], res.labels[clustered]
@@ -126,12 +124,12 @@ def per_file(rel: str, n: int, cfg: SimplifyConfig, paper_restarts: int) -> tupl
 
 
 def speed(cfgs: dict[str, SimplifyConfig], repeat: int, n: int) -> list[dict]:
-    xyz, inten, ret = load("ahn4/ahn_2496_9727.laz", n)  # 56 000: ~50 000 first returns
+    xyz, ret = load("ahn4/ahn_2496_9727.laz", n)  # 56 000: ~50 000 first returns
     out = []
     for name, cfg in cfgs.items():
         best: dict | None = None
         for i in range(repeat):
-            res = simplify(xyz, cfg=cfg, intensity=inten, return_number=ret,
+            res = simplify(xyz, cfg=cfg, return_number=ret,
                            rng=np.random.default_rng(i))
             if best is None or res.timings["total"] < best["total"]:
                 best = dict(res.timings)

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from lidar_obstacles.config import DemBuilderConfig, NodeInputConfig, ObstacleDetectorConfig
+from lidar_obstacles.core.classes import GROUND
 from lidar_obstacles.errors import (BagError, CloudFormatError, LasError, LidarObstaclesError,
                                     reason_key)
 
@@ -233,7 +234,7 @@ def dem_comparison(xyz: np.ndarray, reference: np.ndarray, predicted: np.ndarray
 
     cfg = cfg or DemBuilderConfig()
     ref_ground = np.isin(reference, GROUND_CODES)
-    pred_ground = predicted == 2
+    pred_ground = predicted == GROUND
     rng = np.random.default_rng(seed)
     idx = np.flatnonzero(ref_ground)
     held = rng.choice(idx, size=min(check_points, len(idx) // 10), replace=False) \
@@ -393,7 +394,7 @@ def benchmark_isprs(folder: str | Path, *, params_file: str | Path | None = None
         run_detector(inp, det_cfg)
         seconds = time.perf_counter() - t0
         _, ref, pred = _concat(inp)
-        e = ground_object_errors(ref == 2, pred == 2)
+        e = ground_object_errors(ref == GROUND, pred == GROUND)
         rows[f"samp{s}"] = {"points": int(len(ref)), "type_i": e["type_i"],
                             "type_ii": e["type_ii"], "total_error": e["total_error"],
                             "kappa": e["kappa"], "seconds": round(seconds, 3)}

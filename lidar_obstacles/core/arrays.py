@@ -264,7 +264,8 @@ def stop_signals_held() -> Iterator[None]:
 
 
 def tree_query(tree: cKDTree, x: np.ndarray, **kwargs: Any) -> tuple[np.ndarray, np.ndarray]:
-    """`tree.query(x, **kwargs)` (distances, indices); a query on several threads
+    """`tree.query(x, **kwargs)` (distances, indices) for (Q, D) query points `x` in the
+    tree's units; a query on several threads
     (`workers` other than 1) runs with the stop signals held (`stop_signals_held`).
 
     Why: SciPy runs a parallel query in Python threads and joins them. A Ctrl-C raised in

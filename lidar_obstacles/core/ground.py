@@ -63,8 +63,9 @@ machine. What made the difference: scipy's grey_opening replaced by `_window_ext
 (fresh grid-sized arrays cost ~1 us per 4 KB page in faults here), and no masked writes
 over scattered holes (a where= write costs 20-100 x a plain pass on sparse scans).
 
-Height above ground of every point comes from the ground TIN (nearest ground point outside
-its hull), never from a sensor height.
+Height above ground of every point comes from the ground surface, never from a sensor
+height: for `hybrid` the in-painted raster of the ground points, read bilinearly; for `tin`
+and `ransac` the TIN of the ground points (the nearest ground point outside its hull).
 """
 from __future__ import annotations
 
@@ -897,10 +898,10 @@ def _rim_points(xyz: np.ndarray, flat: np.ndarray, windows: "_GroundWindows",
     judged, against their `rim_neighbours` nearest ground points within `rim_window`, in
     `rim_directions` half-discs.
 
-    xyz: (N + F, 3) points and context; flat: (N + F,) their flat cells; ground_grid:
-    (rows, cols) lowest ground point per cell, +inf where none; candidates: indices of the
-    rejected points; ground_idx: indices of the ground points (context included); opening:
-    its work arrays are reused (the opening is done).
+    xyz: (N + F, 3) m, points and context; flat: (N + F,) their flat cells; windows: the
+    highest and lowest ground around each cell, and the points near given points;
+    candidates: indices of the rejected points; ground_idx: indices of the ground points
+    (context included).
 
     Why: the opening cuts the rims of terrace steps and cliffs (the step's foot is within
     the window), and the in-painted surface under a rim point mixes the plateau with the

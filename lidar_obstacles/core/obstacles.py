@@ -1437,7 +1437,7 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
         is_building, roofs = _buildings(xyz, cand, shape, ~is_wire & ~tower, cfg, rng,
                                         known_buildings, hag[cand])
         classes[cand[is_building]] = BUILDING
-        _wall_feet(xyz, hag, nong[hag[nong] < cfg.min_height],
+        _wall_feet(xyz, nong[hag[nong] < cfg.min_height],
                    cand[roofs & (hag[cand] < cfg.min_height + WALL_FOOT_BAND)], classes)
         pole = (kept & (extent < 2.0) & (height > 3.0))[labels] & ~is_tower
         classes[cand[rest[pole & ~is_building[rest]]]] = UNCLASSIFIED
@@ -1485,7 +1485,7 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
                            buildings, xyz[cand])
 
 
-def _wall_feet(xyz: np.ndarray, hag: np.ndarray, low: np.ndarray, walls: np.ndarray,
+def _wall_feet(xyz: np.ndarray, low: np.ndarray, walls: np.ndarray,
                classes: np.ndarray) -> None:
     """Class BUILDING for the points `low` (indices of non-ground points below
     `obstacles.min_height`) that stand under a wall: within WALL_FOOT_REACH on the map of

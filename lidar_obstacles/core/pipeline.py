@@ -22,6 +22,7 @@ from lidar_obstacles.core.arrays import all_columns, column_max, column_min, poi
 from lidar_obstacles.core.classes import GROUND, NOISE
 
 if TYPE_CHECKING:
+    from lidar_obstacles.core.dem import DemGrid
     from lidar_obstacles.core.ground import GroundResult
 
 # The rolling DEM is measured at the check points of the last this many messages.
@@ -500,6 +501,7 @@ class DemPipeline:
         t1 = time.perf_counter()
         return {"ground": 0.0, "update": t1 - t0, "total": t1 - t0}
 
-    def check_accuracy(self) -> dict[str, float | int | None]:
-        """The current DEM at the held-out check points: check_rmse_m, check_r2, check_n."""
-        return self.checks.accuracy(self.dem.snapshot())
+    def check_accuracy(self, grid: DemGrid | None = None) -> dict[str, float | int | None]:
+        """`grid` (default: a snapshot of the current DEM) at the held-out check points:
+        check_rmse_m, check_r2, check_n."""
+        return self.checks.accuracy(self.dem.snapshot() if grid is None else grid)

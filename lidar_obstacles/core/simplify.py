@@ -88,7 +88,7 @@ class SimplifyResult:
     reached 0). candidates: ``normal_cluster`` only, one :class:`Candidate` per cluster.
     chosen: the kept cluster (``normal_cluster``) or -1. r: Pearson correlation of the TIN
     raster of the kept points with that of every clustered point (NaN when not computed or
-    not computable). reason: "" or why the input was degenerate / intensity unused.
+    not computable). reason: "" or why the input was degenerate.
     timings: seconds per step.
     """
 
@@ -366,13 +366,12 @@ def _first_returns(return_number: np.ndarray | None, n: int,
     return ret <= 1, ""
 
 
-def simplify(xyz: np.ndarray, *, cfg: SimplifyConfig, intensity: np.ndarray | None = None,
-             return_number: np.ndarray | None = None,
+def simplify(xyz: np.ndarray, *, cfg: SimplifyConfig, return_number: np.ndarray | None = None,
              rng: np.random.Generator | None = None) -> SimplifyResult:
     """Simplify a cloud by K-means++ clustering of its normals.
 
-    xyz: (N, 3) float64 metres. intensity: (N,) or None; accepted for the paper's
-    interface but not used (see the module docstring), which ``reason`` notes.
+    xyz: (N, 3) float64 metres. (No intensity: the paper standardises it with X, Y, Z, but
+    a normal is the PCA of a plane in X, Y, Z; see the module docstring.)
     return_number: (N,) ints or None; with ``cfg.first_returns`` only points with return
     number 1 (or 0, not recorded) are clustered and later returns are never kept.
     rng: defaults to ``cfg.seed``; the result is deterministic for a given generator state.
@@ -393,17 +392,12 @@ def simplify(xyz: np.ndarray, *, cfg: SimplifyConfig, intensity: np.ndarray | No
     arr = _check_xyz(xyz, "simplify")
     n = len(arr)
     gen = np.random.default_rng(cfg.seed if rng is None else rng)
-    if intensity is not None and np.shape(intensity) != (n,):
-        raise CloudFormatError(f"simplify: intensity has shape {np.shape(intensity)}, "
-                               f"expected ({n},)")
     clustered, note = _first_returns(return_number, n, cfg.first_returns)
     notes = [note] if note else []
     far = far_points(arr)
     if far.any():  # a stray return kilometres off would make the cloud look like a line
         clustered &= ~far
         notes.append(f"{int(far.sum())} stray points far from the cloud dropped")
-    if intensity is not None:
-        notes.append("intensity not used: normals are geometric (PCA of X, Y, Z)")
     idx = np.flatnonzero(clustered)
     pts = arr[idx]
     labels = np.full(n, -1, dtype=np.int32)

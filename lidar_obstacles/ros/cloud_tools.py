@@ -74,7 +74,6 @@ def simplify(src: Path, out: Path, *, params_file: Path | None = None,
         # second or so: it is the paper's measure of what the simplification kept.
         result = simplify_points(
             las.xyz, cfg=dataclasses.replace(cfg.simplify, validate=True),
-            intensity=las.points["intensity"] if "intensity" in names else None,
             return_number=las.points["return_number"] if "return_number" in names else None,
             rng=np.random.default_rng(cfg.simplify.seed))
         kept = write_las_subset(src, result.keep, out)

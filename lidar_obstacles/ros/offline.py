@@ -942,7 +942,7 @@ def export_dem(src: Path, out: Path, *, topic: str | None = None,
         raise BagError(f"no cloud of {src} could be processed "
                        f"({stats.rejected} rejected: {stats.reject_reasons})")
     grid = stage.grid()
-    if grid is None or not np.isfinite(grid.elevation).any():
+    if not np.isfinite(grid.elevation).any():
         raise BagError(f"no ground found in {src}: cannot build a DEM")
     grid = crop_to_data(grid)
     crs_text = crs or dem_cfg.export.crs or bag_crs

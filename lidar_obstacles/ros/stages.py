@@ -15,6 +15,7 @@ import numpy as np
 from lidar_obstacles.config import (CloudSimplifierConfig, DemBuilderConfig, NodeInputConfig,
                                     ObstacleDetectorConfig, PointsNodeConfig)
 from lidar_obstacles.core.arrays import all_columns
+from lidar_obstacles.core.classes import NOISE
 from lidar_obstacles.core.pipeline import (DemPipeline, GroundStep, ObstacleDetector,
                                            ObstacleResult)
 from lidar_obstacles.errors import CloudFormatError
@@ -206,7 +207,7 @@ class DetectorStage:
         t0 = time.perf_counter()
         finite = work.finite
         n = len(work.points)
-        classes = np.full(n, 7, np.uint8)  # non-finite points: noise, never ground
+        classes = np.full(n, NOISE, np.uint8)  # non-finite points: noise, never ground
         hag = np.full(n, np.nan, np.float32)
         ground = np.zeros(n, bool)
         classes[finite], hag[finite], ground[finite] = (
@@ -306,7 +307,7 @@ class DemStage:
         """`dem`, `dem_image`, `dem_info` of the current grid (empty list before any data);
         `check_stats` are measured on that grid."""
         grid = self.grid()
-        self.check_stats = self.pipeline.checks.accuracy(grid)
+        self.check_stats = self.pipeline.check_accuracy(grid)
         if grid.elevation.size == 0:
             return []
         hdr = messages.header(self.last_stamp_ns if stamp_ns is None else stamp_ns,
@@ -341,7 +342,6 @@ class SimplifierStage:
                        widen_xyz=cfg.odometry_xyz_type == "float64")
         points = prep.points
         result = simplify(prep.xyz, cfg=cfg.simplify,
-                          intensity=_attr(points, "intensity"),
                           return_number=_attr(points, "return_number"), rng=self.rng)
         hdr = messages.header(prep.stamp_ns, prep.frame_id)
         out = [("points_simplified", messages.cloud(select_points(points, result.keep), hdr))]
