@@ -38,6 +38,23 @@ _NUMBER = re.compile(r"(?<!\w)\d+(?:[.,]\d+)*(?:[eE][-+]?\d+)?")
 _DETAIL = re.compile(r" ?\([^()]+\)")  # an innermost parenthesis and the space before it
 
 
+# Reasons counted apart, at most; the rest count together (a flood of clouds whose
+# field names change each time made one key per cloud: 19 994 after 20 000).
+MAX_REASON_KEYS = 32
+OTHER_REASONS = "other reasons"
+
+
+def count_reason(reasons: dict[str, int], message: str) -> str:
+    """Count a rejected cloud in `reasons` under the key of its error `message`
+    (:func:`reason_key`), or under OTHER_REASONS once MAX_REASON_KEYS kinds are counted.
+    Returns the key."""
+    key = reason_key(message)
+    if key not in reasons and len(reasons) >= MAX_REASON_KEYS:
+        key = OTHER_REASONS
+    reasons[key] = reasons.get(key, 0) + 1
+    return key
+
+
 def reason_key(message: str) -> str:
     """The kind of an error, for counting rejected clouds by reason: its message without
     its details (a parenthesis, anything after ": "), every number as N, at most 80

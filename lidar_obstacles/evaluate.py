@@ -19,7 +19,7 @@ import numpy as np
 from lidar_obstacles.config import DemBuilderConfig, NodeInputConfig, ObstacleDetectorConfig
 from lidar_obstacles.core.classes import GROUND
 from lidar_obstacles.errors import (BagError, CloudFormatError, LasError, LidarObstaclesError,
-                                    reason_key)
+                                    count_reason)
 
 log = logging.getLogger(__name__)
 
@@ -156,8 +156,7 @@ def _labelled_clouds(reader, topic: str | None, cfg: NodeInputConfig,
                            pose=pose, transform=cfg.use_odometry)
             cloud = _from_points(prep.points, stamp_ns * 1e-9, prep.xyz)
         except CloudFormatError as exc:
-            key = reason_key(str(exc))
-            rejected[key] = rejected.get(key, 0) + 1
+            count_reason(rejected, str(exc))
             malformed += 1
             first = first or (f"cloud {seen} (stamp {stamp_ns // 10**9}."
                               f"{stamp_ns % 10**9:09d} s): {exc}")

@@ -220,3 +220,17 @@ def test_rejected_clouds_are_counted_by_the_kind_of_their_error():
         "field 'x' must be a single FLOAT32 or FLOAT64, got float16"
     assert reason_key("point_step 8: smaller than its fields") == "point_step N"
     assert len(reason_key("x" * 200)) == 80
+
+
+def test_reasons_are_counted_apart_up_to_a_bound():
+    # a flood of clouds each with its own unknown field made one /diagnostics key per cloud
+    from lidar_obstacles.errors import MAX_REASON_KEYS, OTHER_REASONS, count_reason
+
+    reasons: dict[str, int] = {}
+    for name in ("alpha", "beta", "gamma", "delta") * 20:
+        for i in range(12):
+            count_reason(reasons, f"field '{name}{'x' * i}' has unknown datatype 9")
+    count_reason(reasons, "cloud has 4407 points, more than input.max_points=100")
+    assert len(reasons) == MAX_REASON_KEYS + 1 and sum(reasons.values()) == 4 * 20 * 12 + 1
+    # 48 kinds, 20 clouds each: the first 32 apart, the other 16 and the last one together
+    assert reasons[OTHER_REASONS] == (48 - MAX_REASON_KEYS) * 20 + 1

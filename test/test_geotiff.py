@@ -87,6 +87,10 @@ def test_errors_leave_nothing_behind(tmp_path):
         write_geotiff(tmp_path / "missing" / "dem.tif", _grid(), crs_epsg=None)
     with pytest.raises(ExportError, match="empty"):
         write_geotiff(tmp_path / "dem.tif", empty_grid(1.0, "no ground points"), crs_epsg=None)
+    # a folder name the system refuses raised OSError from the check itself, which took
+    # `dem_builder` down from its save_dem service (as a folder one may not search does)
+    with pytest.raises(ExportError, match="cannot write .*name too long"):
+        write_geotiff(tmp_path / ("x" * 300) / "dem.tif", _grid(), crs_epsg=None)
     assert list(tmp_path.iterdir()) == []
 
 

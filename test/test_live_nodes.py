@@ -311,6 +311,12 @@ def test_runtime_parameters_and_malformed_clouds(ros_node):
                           fields=[PointField(name=n, offset=4 * i, datatype=7, count=1)
                                   for i, n in enumerate("xyz")])
         msg.data = bytes(60)
+        # and one without z, sent in turn: one warning throttle for all kinds said only the
+        # first kind, the other was only a count
+        no_z = PointCloud2(height=1, width=10, point_step=8, row_step=80,
+                           fields=[PointField(name=n, offset=4 * i, datatype=7, count=1)
+                                   for i, n in enumerate("xy")], data=bytes(80))
+        sent = [0]
         _spin_until(ros_node, lambda: pub.get_subscription_count() > 0, 20)
 
         def rejected() -> int:
@@ -322,9 +328,10 @@ def test_runtime_parameters_and_malformed_clouds(ros_node):
         def published_and_rejected() -> bool:
             # Published until counted: the node may re-create its subscription (its
             # reliability follows the publishers, re-checked every second) and miss some.
-            pub.publish(msg)
+            pub.publish(msg if sent[0] % 2 == 0 else no_z)
+            sent[0] += 1
             rclpy.spin_once(ros_node, timeout_sec=0.2)
-            return rejected() >= 3
+            return rejected() >= 4
 
         assert _spin_until(ros_node, published_and_rejected, 30)
         assert det.poll() is None, "the node must survive malformed clouds"
@@ -336,7 +343,8 @@ def test_runtime_parameters_and_malformed_clouds(ros_node):
         ros_node.destroy_subscription(sub)
         rc, log = _stop(det)
     assert rc == 0, log[-2000:]
-    assert "dropped a cloud" in log and "row_step" in log
+    assert "dropped a cloud" in log and "row_step" in log and "no 'z' field" in log
+    assert log.count("no 'z' field") <= 2 and log.count("row_step") <= 2  # (throttled)
     assert "Thread 0x" in log and "node_base.py" in log  # e.g. the worker, waiting for clouds
 
 

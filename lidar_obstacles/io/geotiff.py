@@ -39,9 +39,9 @@ def _atomic_write(path: str | Path, write: Callable[[str], None], kind: Kind) ->
     """`atomic_write`, with the problems a user can fix as one ExportError line."""
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise ExportError(f"cannot write {path}: folder {folder} does not exist")
-    try:
+    try:  # (the check too: a folder one cannot search, or a name too long, raises)
+        if not folder.is_dir():
+            raise ExportError(f"cannot write {path}: folder {folder} does not exist")
         return atomic_write(path, lambda tmp: write(str(tmp)), kind=kind)
     except OSError as exc:
         raise ExportError(f"cannot write {path}: {exc}") from None

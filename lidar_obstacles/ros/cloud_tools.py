@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 from lidar_obstacles.config import (CloudSimplifierConfig, FeaturesConfig, ObstacleDetectorConfig,
                                     load_params_file)
 from lidar_obstacles.core.ground import far_points
-from lidar_obstacles.errors import BagError, CloudFormatError, LasError, reason_key
+from lidar_obstacles.errors import BagError, CloudFormatError, LasError, count_reason
 from lidar_obstacles.io.atomic import LAS, check_replaceable
 from lidar_obstacles.io.bags import CRS_TOPIC, POINTCLOUD2, BagReader, BagWriter
 from lidar_obstacles.ros import messages
@@ -199,8 +199,7 @@ def _bag_clouds(src: Path, out: Path, *, topic: str | None, storage: str, out_to
                 try:
                     msg_out, a, b = keep_of(reader.deserialize(record))
                 except CloudFormatError as exc:
-                    key = reason_key(str(exc))
-                    rejected[key] = rejected.get(key, 0) + 1
+                    count_reason(rejected, str(exc))
                     last_reject = str(exc)
                     continue
                 bag.write(out_topic, record.stamp_ns, _serialize(msg_out))

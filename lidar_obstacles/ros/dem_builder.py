@@ -3,6 +3,7 @@ published as `dem`, `dem_image` and `dem_info`, saved as GeoTIFF by the `save_de
 from __future__ import annotations
 
 import os
+import traceback
 
 from nav_msgs.msg import MapMetaData
 from sensor_msgs.msg import Image, PointCloud2
@@ -80,6 +81,11 @@ class DemBuilderNode(PipelineNode):
             write_geotiff(path, grid, crs_epsg=epsg, crs_wkt=wkt)
         except LidarObstaclesError as exc:  # (its one line names the path or the parameter)
             response.success, response.message = False, str(exc)
+            return response
+        except Exception as exc:  # noqa: BLE001 - an answer, not a node taken down
+            self.get_logger().error(f"save_dem failed (a bug, please report it):\n"
+                                    f"{traceback.format_exc()}")
+            response.success, response.message = False, f"{type(exc).__name__}: {exc}"
             return response
         response.success, response.message = True, f"wrote {path}"
         return response

@@ -34,7 +34,7 @@ from sensor_msgs.msg import PointCloud2
 
 from lidar_obstacles.core.arrays import (release_free_memory, reuse_freed_memory,
                                          single_threaded_blas)
-from lidar_obstacles.errors import ConfigError, LidarObstaclesError, reason_key
+from lidar_obstacles.errors import ConfigError, LidarObstaclesError, count_reason
 from lidar_obstacles.ros import messages
 from lidar_obstacles.ros.params import declare_config, on_parameter_change
 from lidar_obstacles.ros.stages import (Pose, coarse_xyz_warning, moving_frame_warning,
@@ -146,6 +146,7 @@ class PipelineNode(Node):
                                       "points_out": 0}
         self.reject_reasons: collections.Counter[str] = collections.Counter()
         self._dropped_reported = 0  # clouds dropped as of the last diagnostics
+        self._warned_at: dict[str, float] = {}  # the last warning of each kind of drop
         self.latencies: collections.deque[float] = collections.deque(maxlen=200)
         self.recv_times: collections.deque[float] = collections.deque(maxlen=50)
         self._inbox: collections.deque[PointCloud2] = collections.deque(
@@ -312,15 +313,21 @@ class PipelineNode(Node):
 
     def _reject(self, reason: str, counter: str = "rejected") -> None:
         self.stats[counter] += 1
-        self.reject_reasons[reason_key(reason)] += 1
-        self.get_logger().warning(f"dropped a cloud: {reason}",
-                                  throttle_duration_sec=WARN_THROTTLE_S)
+        key = count_reason(self.reject_reasons, reason)
+        # throttled per kind: one shared throttle said only the first of two alternating
+        # reasons, and the other was only a count
+        now = time.monotonic()
+        if now - self._warned_at.get(key, float("-inf")) >= WARN_THROTTLE_S:
+            self._warned_at[key] = now
+            self.get_logger().warning(f"dropped a cloud: {reason}")
 
     # ---------------------------------------------------------------- diagnostics
     def _publish_diagnostics(self) -> None:
         self.diag_pub.publish(messages.diagnostics(
             self._diag_header(), self.get_name(), self.get_fully_qualified_name(),
-            self.stats, self.reject_reasons, self.latencies,
+            # copies: the worker thread counts while this (the executor's) thread reads, and
+            # a new reason meanwhile stopped the node ("dictionary changed size")
+            dict(self.stats), dict(self.reject_reasons), list(self.latencies),
             messages.rate_hz(self.recv_times, time.monotonic()), self.extra_diagnostics(),
             dropped_before=self._dropped_reported))
         self._dropped_reported = messages.dropped(self.stats)

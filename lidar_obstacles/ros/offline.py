@@ -20,7 +20,7 @@ import numpy as np
 
 from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
 from lidar_obstacles.core.arrays import release_free_memory, reuse_freed_memory
-from lidar_obstacles.errors import BagError, CloudFormatError, LasError, reason_key
+from lidar_obstacles.errors import BagError, CloudFormatError, LasError, count_reason
 from lidar_obstacles.core.pipeline import GroundStep, ObstacleResult
 from lidar_obstacles.io.bags import (CRS_TOPIC, ODOMETRY, POINTCLOUD2, BagReader, BagWriter,
                                      TopicInfo, read_crs)
@@ -520,8 +520,7 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                     n_points = n_points if detector is not None else dem_points
             except CloudFormatError as exc:
                 stats.rejected += 1
-                key = reason_key(str(exc))
-                stats.reject_reasons[key] = stats.reject_reasons.get(key, 0) + 1
+                count_reason(stats.reject_reasons, str(exc))
                 stats.last_reject = str(exc)
                 yield from diagnostics_due(stamp_ns, record.stamp_ns)
                 continue
