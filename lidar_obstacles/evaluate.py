@@ -136,10 +136,14 @@ def _labelled_clouds(reader, topic: str | None, cfg: NodeInputConfig,
     poses = PoseBuffer()
     clouds, seen, malformed, first = [], 0, 0, ""
     moving: str | None = None  # the moving-frame warning, judged at the first pose
+    ignored_odometry = False
     for rec in reader.records([cloud_topic, *odom]):
         msg = reader.deserialize(rec)
         if rec.topic in odom:
-            poses.add(pose_of_odometry(msg))
+            problem = poses.add(pose_of_odometry(msg))
+            if problem is not None and not ignored_odometry:  # (left out, as the node does)
+                log.warning("evaluate: ignored %s (and any more such)", problem)
+                ignored_odometry = True
             continue
         seen += 1
         stamp_ns = int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)

@@ -3,6 +3,7 @@ message): points kept that have no return (`input.keep_non_finite`)."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from lidar_obstacles.config import ObstacleDetectorConfig, replace
 from lidar_obstacles.io.pointcloud2 import read_points
@@ -37,3 +38,24 @@ def test_kept_points_without_a_return_are_noise_never_ground_and_not_counted():
     assert (clouds["obstacles"]["class"][gone] == 7).all()
     assert np.isnan(clouds["obstacles"]["height_above_ground"][gone]).all()
     assert (stats["classes"][missing.ravel()] == 7).all()
+
+
+@pytest.mark.parametrize("position, orientation, said", [
+    ([0.0, 0.0, 50.0], [0.0, 0.0, 0.0, 0.0], "zero quaternion"),
+    ([0.0, np.nan, 50.0], [0.0, 0.0, 0.0, 1.0], "not finite"),
+    ([np.inf, 0.0, 50.0], [0.0, 0.0, 0.0, 1.0], "not finite"),
+    ([0.0, 0.0, 50.0], [0.0, np.nan, 0.0, 1.0], "not finite"),
+])
+def test_an_odometry_pose_that_cannot_place_a_cloud_is_left_out(position, orientation, said):
+    # used as it came, a zero quaternion put every point of the cloud at NaN: published as
+    # 43 742 noise points at NaN, counted as processed
+    from lidar_obstacles.ros.node_base import PoseBuffer
+    from lidar_obstacles.ros.stages import Pose
+
+    poses = PoseBuffer()
+    good = Pose(10**9, np.array([1.0, 2.0, 50.0]), np.array([0.0, 0.0, 0.0, 1.0]), "odom")
+    assert poses.add(good) is None
+    bad = Pose(10**9 + 10**7, np.array(position), np.array(orientation), "odom")
+    problem = poses.add(bad)
+    assert problem is not None and said in problem
+    assert poses.nearest(10**9 + 10**7, 0.2) is good  # the good one stands in

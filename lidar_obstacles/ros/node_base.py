@@ -38,7 +38,7 @@ from lidar_obstacles.errors import ConfigError, LidarObstaclesError, count_reaso
 from lidar_obstacles.ros import messages
 from lidar_obstacles.ros.params import declare_config, on_parameter_change
 from lidar_obstacles.ros.stages import (Pose, coarse_xyz_warning, moving_frame_warning,
-                                        pose_of_odometry)
+                                        pose_of_odometry, pose_problem)
 
 WARN_THROTTLE_S = 5.0
 
@@ -61,10 +61,15 @@ class PoseBuffer:
         self._poses: collections.deque[Pose] = collections.deque()
         self._lock = threading.Condition()
 
-    def add(self, pose: Pose) -> None:
+    def add(self, pose: Pose) -> str | None:
+        """Hold `pose`; or, when it cannot place a cloud, not, and say why."""
+        problem = pose_problem(pose)
+        if problem is not None:
+            return problem
         with self._lock:
             self._add(pose)
             self._lock.notify_all()
+        return None
 
     def _add(self, pose: Pose) -> None:
         if self._stamps and pose.stamp_ns < self._stamps[-1]:
@@ -131,7 +136,7 @@ class PipelineNode(Node):
         self._stage_cfg = self.cfg  # the stage's
         on_parameter_change(self, lambda: self.cfg, self._apply_config)
         self.poses = PoseBuffer()
-        self.create_subscription(Odometry, "odom", lambda m: self.poses.add(pose_of_odometry(m)),
+        self.create_subscription(Odometry, "odom", self._on_odometry,
                                  QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT))
         self._points_sub = None
         self._points_reliability: ReliabilityPolicy | None = None
@@ -143,7 +148,7 @@ class PipelineNode(Node):
         self.stats: dict[str, Any] = {"received": 0, "processed": 0, "rejected": 0,
                                       "dropped_no_pose": 0, "dropped_superseded": 0,
                                       "lost": 0, "failed": 0, "points_in": 0,
-                                      "points_out": 0}
+                                      "points_out": 0, "odometry_ignored": 0}
         self.reject_reasons: collections.Counter[str] = collections.Counter()
         self._dropped_reported = 0  # clouds dropped as of the last diagnostics
         self._warned_at: dict[str, float] = {}  # the last warning of each kind of drop
@@ -310,6 +315,13 @@ class PipelineNode(Node):
         for topic, out in outputs:
             self.pubs[topic].publish(out)
         return stats["points_in"], stats[self.out_key]
+
+    def _on_odometry(self, msg: Odometry) -> None:
+        problem = self.poses.add(pose_of_odometry(msg))
+        if problem is not None:  # left out: its clouds wait for a good pose, or are dropped
+            self.stats["odometry_ignored"] += 1
+            self.get_logger().warning(f"ignored an odometry message: {problem}",
+                                      throttle_duration_sec=WARN_THROTTLE_S)
 
     def _reject(self, reason: str, counter: str = "rejected") -> None:
         self.stats[counter] += 1

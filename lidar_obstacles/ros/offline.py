@@ -465,14 +465,18 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
 
     # the stamps the bag spans: a bag's stamps may go back (its duration came out negative)
     lo_ns = hi_ns = last_ns = None
-    warned: set[int] = set()  # (each warning once)
+    warned: set[int | str] = set()  # (each warning once)
     n_clouds = reader.count([cloud_topic])
     bar = _progress(None, n_clouds, desc)
     t_start = time.perf_counter()
     try:
         for record in reader.records(wanted):
             if record.topic in odom:
-                poses.add(pose_of_odometry(reader.deserialize(record)))
+                problem = poses.add(pose_of_odometry(reader.deserialize(record)))
+                if problem is not None and "odometry" not in warned:  # (left out, said once)
+                    bar.write(f"{desc}: warning: ignored {problem} (and any more such)",
+                              file=sys.stderr)
+                    warned.add("odometry")
             if record.topic != cloud_topic:
                 raw = cdr_of_record(reader, record) if record.topic in passed else None
                 if raw is not None:

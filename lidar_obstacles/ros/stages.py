@@ -54,6 +54,18 @@ def pose_of_odometry(msg) -> Pose:
                 msg.child_frame_id)
 
 
+def pose_problem(pose: Pose) -> str | None:
+    """Why a pose cannot place a cloud (None when it can): a position or orientation
+    that is not finite, or an orientation of no length (all zeros: "unset"). Used as it
+    came, such a pose put every point of its cloud at NaN, or at 1e12 m."""
+    if not (np.isfinite(pose.position).all() and np.isfinite(pose.orientation).all()):
+        return (f"odometry pose at {pose.stamp_ns / 1e9:.3f} s is not finite (position "
+                f"{pose.position.tolist()}, orientation {pose.orientation.tolist()})")
+    if np.linalg.norm(pose.orientation) < 1e-6:
+        return f"odometry pose at {pose.stamp_ns / 1e9:.3f} s has a zero quaternion"
+    return None
+
+
 def moving_frame_warning(cloud_frame: str, pose: Pose | None, use_odometry: bool
                          ) -> str | None:
     """What to say, once, when clouds in the vehicle's own frame (odometry's child frame)
