@@ -187,3 +187,12 @@ def test_a_node_section_with_another_nodes_parameter_is_an_error(tmp_path):
     shared.write_text("/**:\n  ros__parameters:\n    dem.resolution: 0.5\n    tiling.size: 40.0\n")
     assert load_params_file(shared, DemBuilderConfig, "dem_builder").dem.resolution == 0.5
     assert load_params_file(shared, ObstacleDetectorConfig, "obstacle_detector").tiling.size == 40
+
+
+def test_a_clearance_grid_too_many_cells_a_side_is_refused():
+    # 2 000 m at 0.1 m, each in range: 400 M cells, 10 s and 4.4 GB a cloud
+    with pytest.raises(ConfigError, match="20000 cells a side, more than 2000"):
+        replace(ObstacleDetectorConfig(), {"clearance.size": 2000.0, "clearance.resolution": 0.1})
+    assert replace(ObstacleDetectorConfig(), {"clearance.size": 2000.0}).clearance.size == 2000
+    assert replace(ObstacleDetectorConfig(), {"clearance.size": 200.0,
+                                              "clearance.resolution": 0.1}).clearance.size == 200
