@@ -106,7 +106,8 @@ class CloudInputConfig(InputConfig):
 
 @dataclass(frozen=True)
 class TilingConfig:
-    size: float = param(40.0, "edge of the square XY tiles the cloud is cut into", "m",
+    size: float = param(40.0, "`ground.method: ransac` only: edge of the square XY tiles the "
+                        "cloud is cut into", "m",
                         min=5.0, max=1000.0, tunable=True)
     overlap: float = param(5.0, "overlap between neighbouring tiles; points in the overlap "
                            "are decided by the tile whose core contains them", "m",
@@ -189,9 +190,11 @@ class ContextConfig:
 
 @dataclass(frozen=True)
 class ObstaclesConfig:
-    min_height: float = param(0.5, "non-ground points lower than this above ground are not "
-                              "obstacles (low vegetation, curbs)", "m", min=0.0, max=20.0,
-                              tunable=True)
+    min_height: float = param(0.5, "non-ground points lower than this above ground join no "
+                              "object and no obstacle class: they stay in `obstacles` as "
+                              "vegetation by height (low: < 0.5 m), or as building under a "
+                              "wall (curbs, grass, the foot of a wall)", "m", min=0.0,
+                              max=20.0, tunable=True)
     cluster_distance: float = param(1.5, "points closer than this belong to one object", "m",
                                     min=0.1, max=20.0, tunable=True)
     min_points: int = param(3, "objects with fewer points are noise", "points", min=1,
