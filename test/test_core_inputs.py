@@ -219,6 +219,11 @@ def test_rejected_clouds_are_counted_by_the_kind_of_their_error():
     assert reason_key("field 'x' must be a single FLOAT32 or FLOAT64, got float16") == \
         "field 'x' must be a single FLOAT32 or FLOAT64, got float16"
     assert reason_key("point_step 8: smaller than its fields") == "point_step N"
+    from lidar_obstacles.io.pointcloud2 import _check_xyz  # an x of count 3: what it got
+    with pytest.raises(CloudFormatError) as err:             # was cut away, "…, got"
+        _check_xyz(np.dtype([("x", "<f4", (3,)), ("y", "<f4"), ("z", "<f4")]))
+    assert reason_key(str(err.value)) == ("field 'x' must be a single FLOAT32 or FLOAT64, "
+                                          "got N x float32")
     assert len(reason_key("x" * 200)) == 80
 
 

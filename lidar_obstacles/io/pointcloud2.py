@@ -245,9 +245,11 @@ def _check_xyz(dtype: np.dtype) -> None:
             raise CloudFormatError(f"cloud has no '{name}' field (fields: {dtype.names})")
         field_dtype = _field(dtype, name)[0]
         if field_dtype.kind != "f" or field_dtype.subdtype is not None:
-            raise CloudFormatError(
-                f"field '{name}' must be a single FLOAT32 or FLOAT64, got {field_dtype}"
-            )
+            # "3 x float32", not numpy's "('<f4', (3,))", which the reason's key cut away
+            got = (f"{int(np.prod(field_dtype.shape))} x {field_dtype.subdtype[0].name}"
+                   if field_dtype.subdtype is not None else field_dtype.name)
+            raise CloudFormatError(f"field '{name}' must be a single FLOAT32 or FLOAT64, "
+                                   f"got {got}")
 
 
 def cloud_layout(msg: Any) -> CloudLayout:
