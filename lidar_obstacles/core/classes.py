@@ -22,11 +22,12 @@ CLASS_NAMES: dict[int, str] = {
     BUILDING: "building", NOISE: "noise", WIRE: "wire", TOWER: "tower",
 }
 
-# RGB in 0..1, the usual ASPRS-viewer palette: brown ground, greens, red buildings.
+# RGB in 0..1 of the markers, the report's palette (report.CLASS_STYLE): brown ground, greens,
+# red buildings, cyan wires, magenta towers.
 CLASS_COLOURS: dict[int, tuple[float, float, float]] = {
     UNCLASSIFIED: (0.6, 0.6, 0.6), GROUND: (0.55, 0.4, 0.25), LOW_VEGETATION: (0.6, 0.85, 0.4),
     MEDIUM_VEGETATION: (0.3, 0.7, 0.2), HIGH_VEGETATION: (0.05, 0.45, 0.1),
-    BUILDING: (0.85, 0.2, 0.15), NOISE: (0.3, 0.3, 0.3), WIRE: (1.0, 0.85, 0.0),
+    BUILDING: (0.85, 0.2, 0.15), NOISE: (0.3, 0.3, 0.3), WIRE: (0.0, 0.78, 0.88),
     TOWER: (0.85, 0.1, 0.85),
 }
 
