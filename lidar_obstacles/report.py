@@ -295,7 +295,7 @@ def error_categories(reference: Any, predicted: Any) -> np.ndarray:
     reference, predicted: (N,) ASPRS codes, compared by evaluation group
     (:func:`lidar_obstacles.core.metrics.compared_groups`). Type I: reference ground
     predicted as object; Type II: reference object predicted as ground; other: an object
-    given the wrong object group (never, against a reference that classes no object).
+    given the wrong object group (never one the reference does not class).
     Returns (N,) int8.
     """
     from lidar_obstacles.core.metrics import GROUP_GROUND, compared_groups
@@ -813,6 +813,10 @@ def _classes_html(sec: Mapping[str, Any]) -> str:
                    "are ASPRS 0 or 1, as ISPRS's): the predicted objects count as "
                    "<i>other</i>, and the figures over all classes are those of ground "
                    "and object.</p>")
+    elif sec.get("merged_into_other"):
+        out.append("<p class='x'>The reference has no " + html.escape(
+            " or ".join(sec["merged_into_other"])) + " class (its <i>other</i> holds them, "
+                   "as AHN4's class 1): the points predicted so count as <i>other</i>.</p>")
     out.append("<div class='headline'>" + "".join(
         f"<div class='card'><div class='v'>{v}</div><div class='l'>{html.escape(label)}</div></div>"
         for label, v in cards) + "</div>")
@@ -858,8 +862,8 @@ def _classes_html(sec: Mapping[str, Any]) -> str:
 
 
 # what _classes_html shows of an evaluate_classes result
-_CLASS_KEYS = ("n_points", "groups", "reference_classes_objects", "confusion",
-               "overall_accuracy", "kappa", "per_class", "ground_object", "blocks", "safety")
+_CLASS_KEYS = ("n_points", "groups", "reference_classes_objects", "merged_into_other",
+               "confusion", "overall_accuracy", "kappa", "per_class", "ground_object", "blocks", "safety")
 
 
 def _sections(metrics: dict[str, Any]) -> dict[str, Any]:

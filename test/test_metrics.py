@@ -179,6 +179,7 @@ def test_a_reference_of_ground_and_object_only_judges_no_object_class():
     pred = np.array([2, 2, 5, 5, 6, 2, 14, 1])
     r = M.evaluate_classes(ref, pred)
     assert r["reference_classes_objects"] is False
+    assert r["merged_into_other"] == ["vegetation", "building", "wire", "tower"]
     assert r["overall_accuracy"] == pytest.approx(1.0 - r["ground_object"]["total_error"])
     assert r["kappa"] == pytest.approx(r["ground_object"]["kappa"])
     assert error_categories(ref, pred).tolist() == [0, 0, 1, 0, 0, 2, 0, 0]
@@ -188,6 +189,29 @@ def test_a_reference_of_ground_and_object_only_judges_no_object_class():
     assert r["reference_classes_objects"] is True and r["per_class"]["vegetation"][
         "producers_accuracy"] == 1.0
     assert error_categories(ref, pred).tolist() == [0, 0, 1, 0, 3, 2, 3, 0]
+    assert r["merged_into_other"] == []
+
+
+def test_a_reference_without_vegetation_judges_no_vegetation_found():
+    # AHN4: 1 other (mostly vegetation), 2 ground, 6 building. Its trees found as
+    # vegetation were 21.8 % of the tile "of the wrong class".
+    from lidar_obstacles.report import error_categories
+
+    ref = np.array([2, 2, 1, 1, 1, 6, 6, 1])
+    pred = np.array([2, 5, 5, 3, 6, 6, 5, 14])
+    r = M.evaluate_classes(ref, pred)
+    assert r["reference_classes_objects"] is True and r["merged_into_other"] == ["vegetation"]
+    other = r["per_class"]["other"]
+    assert (other["reference_count"], other["predicted_count"]) == (4, 4)
+    assert r["per_class"]["vegetation"]["predicted_count"] == 0
+    # a building on "other" and a building called vegetation stay wrong; a wire too
+    assert r["per_class"]["building"]["users_accuracy"] == pytest.approx(0.5)
+    assert r["per_class"]["building"]["producers_accuracy"] == pytest.approx(0.5)
+    assert r["per_class"]["wire"]["predicted_count"] == 1
+    assert error_categories(ref, pred).tolist() == [0, 1, 0, 0, 3, 0, 3, 3]
+    # with no "other" in the reference, vegetation found on a building is no other point
+    r = M.evaluate_classes(np.array([2, 6, 6]), np.array([2, 5, 6]))
+    assert r["merged_into_other"] == [] and r["per_class"]["vegetation"]["predicted_count"] == 1
 
 
 def test_type_i_and_type_ii_are_not_interchangeable():

@@ -49,6 +49,10 @@ key                                          meaning
                                              object only (every object 0 or 1, as ISPRS):
                                              the predicted objects then count as `other`
                                              (:func:`compared_groups`)
+``merged_into_other``                        the predicted groups counted as `other`, as
+                                             the reference does not class them (list:
+                                             ISPRS all four object groups, AHN4
+                                             ``["vegetation"]``, else empty)
 ``confusion.rows`` / ``.columns``            ``"predicted"`` / ``"reference"``
 ``confusion.labels``                         group names of rows and columns (list)
 ``confusion.matrix``                         counts q_ij, rows predicted, columns reference
@@ -153,21 +157,35 @@ def group_of(classes: Any) -> np.ndarray:
     return _CODE_TO_GROUP[_as_codes(classes, "classes")]
 
 
-def compared_groups(reference: Any, predicted: Any) -> tuple[np.ndarray, np.ndarray, bool]:
-    """(reference groups (N,), predicted groups (N,), whether the reference classes its
-    objects) of (N,) ASPRS codes each, as :func:`evaluate_classes` compares them.
+def compared_groups(reference: Any, predicted: Any
+                    ) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
+    """(reference groups (N,), predicted groups (N,), the predicted groups counted as
+    `other`) of (N,) ASPRS codes each, as :func:`evaluate_classes` compares them.
 
-    A reference that tells ground from object only (ISPRS: every object 0 or 1, none
-    vegetation, building, wire or tower) cannot say an object's class is wrong: there the
-    prediction's objects count as `other` too, and the figures over all classes are those
-    of ground and object (a vegetation point was "wrong" against ISPRS's "object", and
-    samp11 scored overall accuracy 0.55, kappa 0.31, for total error 8.5 %, kappa 0.83)."""
+    A reference cannot say an object's class is wrong where it does not class such
+    objects, and then the predicted objects of those groups count as `other`:
+    - a reference that tells ground from object only (ISPRS: every object 0 or 1, none
+      vegetation, building, wire or tower): all four groups (a vegetation point was
+      "wrong" against ISPRS's "object", and samp11 scored overall accuracy 0.55, kappa
+      0.31, for total error 8.5 %, kappa 0.83);
+    - a reference with `other` objects but no vegetation (AHN4: 1 "other, mostly
+      vegetation", 2 ground, 6 building): vegetation (the AHN4 tile's trees, found as
+      such, were 21.8 % of its points "of the wrong class").
+    Buildings, wires and towers a reference lacks are not merged: a scene may hold none
+    (the simulator's corridor has no building), and one found there is wrong."""
     ref, pred = group_of(reference), group_of(predicted)
-    classed = bool(np.isin(ref, (GROUP_VEGETATION, GROUP_BUILDING, GROUP_WIRE,
-                                 GROUP_TOWER)).any())
-    if not classed:
-        pred = np.where(pred == GROUP_GROUND, GROUP_GROUND, GROUP_OTHER)
-    return ref, pred, classed
+    present = np.zeros(len(GROUPS), bool)
+    present[np.unique(ref)] = True
+    objects = (GROUP_VEGETATION, GROUP_BUILDING, GROUP_WIRE, GROUP_TOWER)
+    if not present[list(objects)].any():
+        merged: tuple[int, ...] = objects
+    elif present[GROUP_OTHER] and not present[GROUP_VEGETATION]:
+        merged = (GROUP_VEGETATION,)
+    else:
+        merged = ()
+    if merged:
+        pred = np.where(np.isin(pred, merged), GROUP_OTHER, pred)
+    return ref, pred, tuple(GROUPS[g] for g in merged)
 
 
 def parse_blocks(spec: str | tuple[int, int]) -> tuple[int, int]:
@@ -407,7 +425,7 @@ def evaluate_classes(
         )
     if ref_codes.size == 0:
         raise CloudFormatError("no points to evaluate")
-    ref, pred, classed = compared_groups(ref_codes, pred_codes)
+    ref, pred, merged = compared_groups(ref_codes, pred_codes)
     k = len(GROUPS)
     matrix = confusion_matrix(ref, pred, k)
     total = int(matrix.sum())
@@ -436,7 +454,8 @@ def evaluate_classes(
     return {
         "n_points": total,
         "groups": list(GROUPS),
-        "reference_classes_objects": classed,
+        "reference_classes_objects": len(merged) < 4,
+        "merged_into_other": list(merged),
         "confusion": {
             "rows": "predicted",
             "columns": "reference",
