@@ -863,7 +863,8 @@ def _classes_html(sec: Mapping[str, Any]) -> str:
 
 # what _classes_html shows of an evaluate_classes result
 _CLASS_KEYS = ("n_points", "groups", "reference_classes_objects", "merged_into_other",
-               "confusion", "overall_accuracy", "kappa", "per_class", "ground_object", "blocks", "safety")
+               "confusion", "overall_accuracy", "kappa", "per_class", "ground_object", "blocks",
+               "safety")
 
 
 def _sections(metrics: dict[str, Any]) -> dict[str, Any]:
