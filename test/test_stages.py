@@ -59,3 +59,22 @@ def test_an_odometry_pose_that_cannot_place_a_cloud_is_left_out(position, orient
     problem = poses.add(bad)
     assert problem is not None and said in problem
     assert poses.nearest(10**9 + 10**7, 0.2) is good  # the good one stands in
+
+
+def test_frame_warnings_say_when_clouds_and_odometry_do_not_fit():
+    from lidar_obstacles.ros.stages import Pose, moving_frame_warning
+
+    pose = Pose(0, np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), "odom", "base_link")
+    # in the body's frame: fine with odometry, a moving frame without it
+    assert moving_frame_warning("base_link", pose, True) is None
+    assert "use_odometry is false" in moving_frame_warning("base_link", pose, False)
+    # already in the odometry's frame: nothing to say either way
+    assert moving_frame_warning("odom", pose, True) is None
+    assert moving_frame_warning("/odom", pose, False) is None
+    # a third frame: placed as if it were the body's, which a tilted mount breaks (no tf)
+    said = moving_frame_warning("lidar_link", pose, True)
+    assert "'lidar_link'" in said and "no tf" in said and "'base_link'" in said
+    assert moving_frame_warning("lidar_link", pose, False) is None
+    # odometry without a child frame tells nothing
+    anonymous = Pose(0, np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), "odom", "")
+    assert moving_frame_warning("lidar_link", anonymous, True) is None

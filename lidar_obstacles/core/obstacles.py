@@ -127,7 +127,8 @@ WALL_FOOT_BAND = 3.0  # m
 # Structures, not buildings, wires or towers (cranes, masts): unclassified, not vegetation
 # (see _structures)
 STRUCTURE_MIN_HEIGHT = 5.0  # m
-STRUCTURE_MIN_POINTS = 100
+STRUCTURE_MIN_EXTENT = 7.0  # m, the box's horizontal diagonal
+STRUCTURE_MIN_POINTS = 100  # fewer tell no share of beams
 STRUCTURE_BEAMS = 0.1  # share of the object's points on steep lines
 STRUCTURE_LINEARITY = 0.7
 STRUCTURE_STEEP = 20.0  # degrees from horizontal, at least
@@ -1448,7 +1449,7 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
         _wall_feet(xyz, nong[hag[nong] < cfg.min_height],
                    cand[roofs & (hag[cand] < cfg.min_height + WALL_FOOT_BAND)], classes)
         pole = (kept & ((extent < 2.0) & (height > 3.0)
-                        | _structures(labels, shape, rest, height)))[labels] & ~is_tower
+                        | _structures(labels, shape, rest, height, extent)))[labels] & ~is_tower
         classes[cand[rest[pole & ~is_building[rest]]]] = UNCLASSIFIED
         # Wires go on through crowns and clutter (not into towers or roofs)
         if is_wire.any() or len(known_wires):
@@ -1495,27 +1496,30 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
 
 
 def _structures(labels: np.ndarray, shape: LocalShape, rest: np.ndarray,
-                height: np.ndarray) -> np.ndarray:
+                height: np.ndarray, extent: np.ndarray) -> np.ndarray:
     """(L,) bool: which of the objects labelled 0..L-1 (labels (R,) of the candidates
     `rest` (R,) indices into `shape`'s points; height (L,) m, the object's top above
-    ground) are built of beams, not grown: taller than STRUCTURE_MIN_HEIGHT, of
+    ground; extent (L,) m, its box's horizontal diagonal) are built of beams, not grown:
+    taller than STRUCTURE_MIN_HEIGHT, wider than STRUCTURE_MIN_EXTENT, of
     STRUCTURE_MIN_POINTS points or more, with STRUCTURE_BEAMS of its points on steep lines
     (linearity over STRUCTURE_LINEARITY, main axis over STRUCTURE_STEEP from horizontal:
     jibs, masts, lattice members) and smooth (mean roughness under STRUCTURE_ROUGHNESS).
 
     A crane stood among the trees as "high vegetation": 88 % of the corridor files'
     cranes (class 26). Their objects hold 11-29 % of points on steep lines, roughness
-    0.14-0.24 m; the files' trees (class 5), AHN4's (class 1) 1-7 %, 0.28-0.42 m (with 7 %
-    one tree of 12AN2_20 went). On the simulated flights the tree objects it took had 8-87
-    points (young trees, a trunk and a small crown), the tower pieces it took (found as no
-    tower, vegetation before) 123-893."""
+    0.14-0.24 m, and are 8.9-27.6 m wide; the files' trees (class 5), AHN4's (class 1)
+    1-7 %, 0.28-0.42 m (with 7 % one tree of 12AN2_20 went). Young trees of the simulated
+    flights, a trunk under a small crown, pass the beams and the roughness (13-37 %,
+    0.08-0.23 m) but are 3.4-5.5 m wide; pieces of towers not found as such (4-17 m wide)
+    go from vegetation to unclassified."""
     n = np.bincount(labels, minlength=len(height))
     steep = np.abs(shape.axis[rest, 2]) > np.sin(np.radians(STRUCTURE_STEEP))
     beams = (shape.linearity[rest] > STRUCTURE_LINEARITY) & steep
     share = np.bincount(labels, beams, len(height)) / np.maximum(n, 1)
     rough = np.bincount(labels, shape.roughness[rest], len(height)) / np.maximum(n, 1)
-    return ((height > STRUCTURE_MIN_HEIGHT) & (n >= STRUCTURE_MIN_POINTS)
-            & (share >= STRUCTURE_BEAMS) & (rough < STRUCTURE_ROUGHNESS))
+    return ((height > STRUCTURE_MIN_HEIGHT) & (extent > STRUCTURE_MIN_EXTENT)
+            & (n >= STRUCTURE_MIN_POINTS) & (share >= STRUCTURE_BEAMS)
+            & (rough < STRUCTURE_ROUGHNESS))
 
 
 def _wall_feet(xyz: np.ndarray, low: np.ndarray, walls: np.ndarray,

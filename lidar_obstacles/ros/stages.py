@@ -68,19 +68,34 @@ def pose_problem(pose: Pose) -> str | None:
 
 def moving_frame_warning(cloud_frame: str, pose: Pose | None, use_odometry: bool
                          ) -> str | None:
-    """What to say, once, when clouds in the vehicle's own frame (odometry's child frame)
-    are processed without `use_odometry`: the ground filter, the rolling contexts and the
-    DEM then work in a frame that moves with every message (the simulated sensor-frame
-    flight: ground kappa 0.956 instead of 0.969), and nothing else would tell. None when
-    all is well or it cannot be told."""
-    if use_odometry or pose is None or not pose.child_frame_id:
+    """What to say, once, when the clouds' frame and the odometry's do not fit together
+    (None when all is well or it cannot be told):
+
+    - clouds in the vehicle's own frame (odometry's child frame) processed without
+      `use_odometry`: the ground filter, the rolling contexts and the DEM then work in a
+      frame that moves with every message (the simulated sensor-frame flight: ground
+      kappa 0.956 instead of 0.969), and nothing else would tell;
+    - with `use_odometry`, clouds in a third frame (a `lidar_link`, with odometry of
+      `base_link`): without tf the clouds are placed as if in the child frame, so a
+      sensor mounted off the body's origin, or tilted, puts the ground off or aslant (a
+      lidar pitched 90 degrees made flat ground a wall of obstacles)."""
+    if pose is None or not pose.child_frame_id:
         return None
-    if cloud_frame.lstrip("/") != pose.child_frame_id.lstrip("/"):
+    frame, child = cloud_frame.lstrip("/"), pose.child_frame_id.lstrip("/")
+    if not use_odometry:
+        if frame != child:
+            return None
+        return (f"the clouds are in '{cloud_frame}', the frame odometry moves "
+                f"('{pose.frame_id}' -> '{pose.child_frame_id}'), and use_odometry is "
+                "false: they are processed in a moving frame; set use_odometry: true to "
+                f"place them in '{pose.frame_id}'")
+    if frame in (child, pose.frame_id.lstrip("/")):
         return None
-    return (f"the clouds are in '{cloud_frame}', the frame odometry moves ('{pose.frame_id}' "
-            f"-> '{pose.child_frame_id}'), and use_odometry is false: they are processed "
-            "in a moving frame; set use_odometry: true to place them in "
-            f"'{pose.frame_id}'")
+    return (f"the clouds are in '{cloud_frame}' and odometry places '{pose.child_frame_id}' "
+            f"in '{pose.frame_id}': there is no tf here, so they are placed as if "
+            f"'{cloud_frame}' were '{pose.child_frame_id}'; publish them in "
+            f"'{pose.child_frame_id}' (or odometry of '{cloud_frame}') if the sensor is "
+            "mounted off the body's origin or tilted")
 
 
 @dataclass(frozen=True)
