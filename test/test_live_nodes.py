@@ -815,3 +815,29 @@ def test_an_integer_for_a_double_parameter_is_taken_at_runtime_as_at_start(ros_n
         assert not half.successful and node.cfg.tiling.max_depth == 3
     finally:
         node.destroy_node()
+
+
+def test_under_sim_time_without_a_clock_the_node_still_matches_its_input_and_reports(ros_node):
+    # With use_sim_time and no /clock yet (a bag played without --clock, or paused), the
+    # timers on the node's clock never fired: the input stayed best effort against a
+    # reliable publisher (losing big clouds) and no diagnostics told of it.
+    proc = _start("lidar_obstacles.scripts.obstacle_detector", "-p", "use_sim_time:=true")
+    diagnostics = []
+    sub = ros_node.create_subscription(
+        DiagnosticArray, "/diagnostics",
+        lambda m: diagnostics.extend(s for s in m.status if "obstacle_detector" in s.name), 10)
+    pub = ros_node.create_publisher(PointCloud2, f"{NS}/points",
+                                    QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
+
+    def reliable() -> bool:
+        subs = ros_node.get_subscriptions_info_by_topic(f"{NS}/points")
+        return bool(subs) and all(s.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+                                  for s in subs)
+    try:
+        assert _spin_until(ros_node, lambda: reliable() and len(diagnostics) >= 2, 30.0), (
+            f"reliable input: {reliable()}, diagnostics: {len(diagnostics)}")
+    finally:
+        ros_node.destroy_subscription(sub)
+        ros_node.destroy_publisher(pub)
+        code, out = _stop(proc)
+    assert code == 0, out

@@ -21,6 +21,7 @@ from typing import Any, Callable
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
@@ -141,10 +142,15 @@ class PipelineNode(Node):
         self._points_sub = None
         self._points_reliability: ReliabilityPolicy | None = None
         self._update_points_subscription()
-        self.create_timer(1.0, self._update_points_subscription)
+        # On the steady clock, not the node's: with use_sim_time and no /clock yet (a bag
+        # played without --clock, or paused) ROS-time timers never fire, and the input
+        # stayed best effort against a reliable publisher, losing big clouds, with no
+        # diagnostics to tell.
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(1.0, self._update_points_subscription, clock=steady)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_timer(1.0, self._publish_diagnostics)
-        self.create_timer(10.0, release_free_memory)  # flat memory over a long flight
+        self.create_timer(1.0, self._publish_diagnostics, clock=steady)
+        self.create_timer(10.0, release_free_memory, clock=steady)  # flat memory, long flights
         self.stats: dict[str, Any] = {"received": 0, "processed": 0, "rejected": 0,
                                       "dropped_no_pose": 0, "dropped_superseded": 0,
                                       "lost": 0, "failed": 0, "points_in": 0,
