@@ -436,6 +436,10 @@ def test_a_second_signal_stops_a_node_busy_with_a_cloud_at_once_and_cleanly(seco
     (["-p", "tiling.sise:=40.0"], "unknown parameter 'tiling.sise' (see docs/parameters.md)"),
     # and rcl added a line of its own, "[ERROR] [...] [rcl]: Failed to parse global arguments"
     (["--params-file", "/nonexistent.yaml"], "params file /nonexistent.yaml not found"),
+    # the input's QoS follows its publishers: an override of it would do nothing
+    (["-p", f"qos_overrides.{NS}/points.subscription.reliability:=reliable"],
+     f"parameter 'qos_overrides.{NS}/points.subscription.reliability': the input's QoS "
+     "follows its publishers; set input.reliability (auto, reliable or best_effort) instead"),
 ])
 def test_bad_parameter_at_start_exits_2_with_one_line(args, expected):
     proc = _start("lidar_obstacles.scripts.obstacle_detector", *args)
@@ -839,5 +843,24 @@ def test_under_sim_time_without_a_clock_the_node_still_matches_its_input_and_rep
     finally:
         ros_node.destroy_subscription(sub)
         ros_node.destroy_publisher(pub)
+        code, out = _stop(proc)
+    assert code == 0, out
+
+
+def test_an_output_takes_qos_overrides(ros_node):
+    # `-p qos_overrides./ns/clearance.publisher.durability:=transient_local` (a Nav2 costmap
+    # layer subscribes transient-local) was accepted and did nothing
+    proc = _start("lidar_obstacles.scripts.obstacle_detector", "-p",
+                  f"qos_overrides.{NS}/clearance.publisher.durability:=transient_local")
+
+    def durability(topic: str):
+        infos = ros_node.get_publishers_info_by_topic(f"{NS}/{topic}")
+        return infos[0].qos_profile.durability if infos else None
+    try:
+        assert _spin_until(ros_node, lambda: durability("clearance") is not None
+                           and durability("obstacles") is not None, 30.0)
+        assert durability("clearance") == DurabilityPolicy.TRANSIENT_LOCAL
+        assert durability("obstacles") == DurabilityPolicy.VOLATILE
+    finally:
         code, out = _stop(proc)
     assert code == 0, out

@@ -11,7 +11,7 @@ from std_srvs.srv import Trigger
 
 from lidar_obstacles.config import DemBuilderConfig
 from lidar_obstacles.errors import LidarObstaclesError
-from lidar_obstacles.ros.node_base import PipelineNode, output_qos, run_node
+from lidar_obstacles.ros.node_base import PipelineNode, create_output, output_qos, run_node
 from lidar_obstacles.ros.stages import DemStage, Pose
 
 
@@ -23,9 +23,9 @@ class DemBuilderNode(PipelineNode):
         self.stage = DemStage(self.cfg)
         qos = output_qos(depth=1, transient_local=True)
         self.pubs = {
-            "dem": self.create_publisher(PointCloud2, "dem", qos),
-            "dem_image": self.create_publisher(Image, "dem_image", qos),
-            "dem_info": self.create_publisher(MapMetaData, "dem_info", qos),
+            "dem": create_output(self, PointCloud2, "dem", qos),
+            "dem_image": create_output(self, Image, "dem_image", qos),
+            "dem_info": create_output(self, MapMetaData, "dem_info", qos),
         }
         self._dirty = False  # clouds since the last publish
         self._due = False  # the publish timer fired since the last publish

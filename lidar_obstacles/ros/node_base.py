@@ -28,9 +28,11 @@ from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
     HistoryPolicy,
+    QoSPolicyKind,
     QoSProfile,
     ReliabilityPolicy,
 )
+from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import PointCloud2
 
 from lidar_obstacles.core.arrays import (release_free_memory, reuse_freed_memory,
@@ -50,6 +52,15 @@ def output_qos(depth: int = 2, transient_local: bool = False) -> QoSProfile:
                       reliability=ReliabilityPolicy.RELIABLE,
                       durability=(DurabilityPolicy.TRANSIENT_LOCAL if transient_local
                                   else DurabilityPolicy.VOLATILE))
+
+
+def create_output(node: Node, msg_type, topic: str, qos: QoSProfile):
+    """A publisher of an output, whose QoS the user may override at start the ROS 2 way,
+    `-p qos_overrides./ns/clearance.publisher.durability:=transient_local` (a Nav2 costmap
+    layer subscribes transient-local); such parameters were accepted and did nothing."""
+    overridable = QoSOverridingOptions([QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH,
+                                        QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY])
+    return node.create_publisher(msg_type, topic, qos, qos_overriding_options=overridable)
 
 
 class PoseBuffer:

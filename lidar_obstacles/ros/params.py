@@ -86,6 +86,13 @@ def declare_config(node: Node, cls: type) -> Any:
     unknown = sorted(n for n in overrides if n not in all_known and not _ros_own(n))
     if unknown:
         raise ConfigError(f"unknown parameter '{unknown[0]}' (see docs/parameters.md)")
+    # outputs take qos_overrides (node_base.create_output); the input's QoS follows its
+    # publishers, and an override of it would do nothing
+    inputs = sorted(n for n in overrides if n.startswith("qos_overrides.")
+                    and ".subscription." in n)
+    if inputs:
+        raise ConfigError(f"parameter '{inputs[0]}': the input's QoS follows its publishers; "
+                          "set input.reliability (auto, reliable or best_effort) instead")
     return replace(cls(), values)
 
 
