@@ -244,7 +244,7 @@ def _diagnostics(bag: Path) -> dict[str, list[tuple[int, int, dict[str, str]]]]:
 
 def test_diagnostics_warn_on_clouds_dropped_since_the_last_report():
     """The counts cover a node's life; the level only what is new: clouds dropped while a
-    node started leave it OK later. A failure (a bug) stays ERROR."""
+    node started leave it OK later. A failure (a bug) stays ERROR; no input is WARN."""
     m = offline.messages
 
     def status(counts, before):
@@ -256,8 +256,23 @@ def test_diagnostics_warn_on_clouds_dropped_since_the_last_report():
                                                           "last report")
     assert status({"processed": 50, "rejected": 3}, 3) == (0, "ok (3 clouds dropped before)")
     assert status({"processed": 50, "rejected": 3, "lost": 1}, 3)[0] == 1
-    assert status({"processed": 50, "failed": 1}, 1)[0] == 2
     assert status({"processed": 50}, 0) == (0, "ok")
+    # a bug leaves it ERROR for good, and the message says so (it said "ok")
+    assert status({"processed": 50, "failed": 1}, 1) == (2, "1 clouds failed on a bug (see "
+                                                         "the log)")
+    assert status({"processed": 50, "failed": 2}, 1)[1].endswith("; 1 clouds dropped since "
+                                                                 "the last report")
+
+    # no cloud since the last report: a dead sensor looked healthy, its latency made up
+    def live(received, before):
+        st = m.diagnostics(m.header(0, ""), "n", "/n", {"received": received}, {}, [], 0.0,
+                           received_before=before).status[0]
+        return ord(st.level), st.message, {kv.key: kv.value for kv in st.values}
+
+    assert live(0, 0)[:2] == (1, "no clouds yet")
+    assert live(40, 40)[:2] == (1, "no clouds since the last report")
+    assert live(50, 40)[:2] == (0, "ok")
+    assert live(0, 0)[2]["latency_p50_ms"] == "nan"
 
 
 def test_replay_writes_each_nodes_diagnostics_on_the_bags_clock(sim_bag, tmp_path):

@@ -157,29 +157,46 @@ def dropped(counts: Mapping[str, int]) -> int:
 def diagnostics(hdr: Header, name: str, hardware_id: str, counts: Mapping[str, int],
                 reject_reasons: Mapping[str, int], latencies_s: Sequence[float],
                 rate: float, extra: Mapping[str, str] | None = None, *,
-                dropped_before: int = 0) -> DiagnosticArray:
+                dropped_before: int = 0, received_before: int | None = None
+                ) -> DiagnosticArray:
     """One node's `/diagnostics` message: its status named "<name>: processing", with the
-    rate (Hz), the latency percentiles of (M,) per-cloud seconds, every count and, as
-    "dropped: <reason>", the count of each reason a cloud gave no output. Level ERROR
-    after a failure (a bug), WARN when clouds were dropped (`DROPPED`) since the last
-    report, which counted `dropped_before` of them, else OK: the counts are the node's
-    whole life, and the clouds dropped while a node starts (before its subscribers
-    match, or waiting for odometry) would otherwise have left it WARN for good. The
-    nodes publish it every second; `replay` writes it every second of the bag's time."""
-    lat = np.asarray(latencies_s, float) if len(latencies_s) else np.zeros(1)
+    rate (Hz), the latency percentiles of (M,) per-cloud seconds ("nan" before any), every
+    count and, as "dropped: <reason>", the count of each reason a cloud gave no output.
+
+    Level ERROR, for good, once a cloud failed on a bug (the node's state is then in
+    doubt); WARN when clouds were dropped (`DROPPED`) since the last report, which counted
+    `dropped_before` of them, or when none came since then (`received_before`, the
+    clouds received as of the last report; None: not judged, as `replay`, whose reports
+    come with the clouds): a dead sensor must not look healthy. Else OK. The counts are the
+    node's whole life; the clouds dropped while a node starts (before its subscribers
+    match, or waiting for odometry) would otherwise have left it WARN for good. The nodes
+    publish it every second; `replay` writes it every second of the bag's time."""
+    lat = np.asarray(latencies_s, float)
+    p50, p95 = np.percentile(lat, (50, 95)) if len(lat) else (np.nan, np.nan)
     values = {"rate_hz": f"{rate:.2f}",
-              "latency_p50_ms": f"{1e3 * np.percentile(lat, 50):.1f}",
-              "latency_p95_ms": f"{1e3 * np.percentile(lat, 95):.1f}"}
+              "latency_p50_ms": f"{1e3 * p50:.1f}",
+              "latency_p95_ms": f"{1e3 * p95:.1f}"}
     values.update({k: str(v) for k, v in counts.items()})
     values.update(extra or {})
     values.update({f"dropped: {k}": str(v) for k, v in reject_reasons.items()})
     bad = dropped(counts)
     new = bad - dropped_before
-    status = DiagnosticStatus(
-        level=(DiagnosticStatus.ERROR if counts.get("failed") else
-               DiagnosticStatus.WARN if new > 0 else DiagnosticStatus.OK),
-        name=f"{name}: processing", hardware_id=hardware_id,
-        message=(f"{new} clouds dropped since the last report" if new > 0 else
-                 f"ok ({bad} clouds dropped before)" if bad else "ok"),
-        values=[KeyValue(key=k, value=v) for k, v in values.items()])
+    failed = int(counts.get("failed", 0))
+    received = int(counts.get("received", 0))
+    idle = received_before is not None and received == received_before
+    if failed:
+        level = DiagnosticStatus.ERROR
+        message = f"{failed} clouds failed on a bug (see the log)" + (
+            f"; {new} clouds dropped since the last report" if new > 0 else "")
+    elif new > 0:
+        level, message = DiagnosticStatus.WARN, f"{new} clouds dropped since the last report"
+    elif idle:
+        level = DiagnosticStatus.WARN
+        message = "no clouds since the last report" if received else "no clouds yet"
+    else:
+        level = DiagnosticStatus.OK
+        message = f"ok ({bad} clouds dropped before)" if bad else "ok"
+    status = DiagnosticStatus(level=level, name=f"{name}: processing",
+                              hardware_id=hardware_id, message=message,
+                              values=[KeyValue(key=k, value=v) for k, v in values.items()])
     return DiagnosticArray(header=hdr, status=[status])

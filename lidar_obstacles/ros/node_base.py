@@ -168,6 +168,7 @@ class PipelineNode(Node):
                                       "points_out": 0, "odometry_ignored": 0}
         self.reject_reasons: collections.Counter[str] = collections.Counter()
         self._dropped_reported = 0  # clouds dropped as of the last diagnostics
+        self._received_reported = 0  # ... and received
         self._warned_at: dict[str, float] = {}  # the last warning of each kind of drop
         self.latencies: collections.deque[float] = collections.deque(maxlen=200)
         self.recv_times: collections.deque[float] = collections.deque(maxlen=50)
@@ -358,8 +359,9 @@ class PipelineNode(Node):
             # a new reason meanwhile stopped the node ("dictionary changed size")
             dict(self.stats), dict(self.reject_reasons), list(self.latencies),
             messages.rate_hz(self.recv_times, time.monotonic()), self.extra_diagnostics(),
-            dropped_before=self._dropped_reported))
+            dropped_before=self._dropped_reported, received_before=self._received_reported))
         self._dropped_reported = messages.dropped(self.stats)
+        self._received_reported = self.stats["received"]
 
     def extra_diagnostics(self) -> dict[str, str]:
         """Node-specific values for the diagnostics (the DEM's accuracy at its check
