@@ -116,10 +116,12 @@ class TilingConfig:
         0.2, "a tile whose ground fit keeps fewer points than this share is split again",
         min=0.0, max=1.0, unit="1")
     max_residual: float = param(
-        1.0, "a tile whose ground residual spread (robust std) exceeds this is split again",
-        "m", min=0.01, max=50.0)
+        1.0, "a tile whose ground departs from its RANSAC plane by more than this (robust "
+        "std of the lowest point of each cell of an eighth of the tile about the plane) is "
+        "split again", "m", min=0.01, max=50.0)
     max_relief: float = param(
-        15.0, "a tile whose ground relief (max - min ground height) exceeds this is split again",
+        15.0, "a tile whose ground relief (max - min of the lowest point of each cell of an "
+        "eighth of the tile: trees and towers do not count) exceeds this is split again",
         "m", min=0.5, max=500.0)
     max_depth: int = param(2, "how many times a poor tile may be split in four", "splits",
                            min=0, max=5)
@@ -391,9 +393,10 @@ class KmeansConfig:
     max_k: int = param(10, "the elbow sweep tries k = 1..max_k", min=2, max=30, unit="clusters")
     restarts: int = param(10, "K-means runs per k; the lowest SSE is kept", "runs", min=1,
                           max=1000)
-    max_iter: int = param(300, "Lloyd iterations per run", min=1, max=10000, unit="iterations")
-    tol: float = param(1e-4, "relative centre shift that ends a run", min=1e-12, max=1.0,
-                       log_scale=True, unit="1")
+    max_iter: int = param(3000, "Lloyd iterations per run (the paper: 3000; the runs end "
+                          "on `tol` long before)", min=1, max=10000, unit="iterations")
+    tol: float = param(1e-4, "relative centre shift that ends a run (the paper: 1e-4)",
+                       min=1e-12, max=1.0, log_scale=True, unit="1")
     seed: int = param(0, "random seed", min=0, max=2**31 - 1, unit="1")
     ground_window: float = param(
         10.0, "clusters are ranked by their points' median height above the lowest point "

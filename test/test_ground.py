@@ -479,3 +479,36 @@ def test_locate_finds_the_facet_holding_each_point(lattice):
     bary = np.einsum("kij,kj->ki", t[:, :2], query[~outside] - t[:, 2])
     bary = np.column_stack([bary, 1 - bary.sum(axis=1)])
     assert (bary >= -1e-9).all()  # each point lies in (or on the edge of) its facet
+
+
+def _ransac_ground(xyz: np.ndarray, **tiling):
+    from lidar_obstacles.config import GroundConfig, RansacConfig, TilingConfig, TinConfig
+    from lidar_obstacles.core.ground import classify_ground
+
+    return classify_ground(xyz, tiling=TilingConfig(**tiling), tin=TinConfig(),
+                           ground=GroundConfig(method="ransac"), ransac=RansacConfig())
+
+
+def test_ransac_tiles_judge_the_grounds_shape_not_the_objects_on_it():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 39.9, (4000, 2))
+    flat = np.column_stack([xy, rng.normal(0, 0.02, 4000)])
+    pole = np.column_stack([np.full(40, 20.0), np.full(40, 20.0), np.linspace(1, 20, 40)])
+    # a 20 m pole on flat ground is no relief: the tile was split five times for it
+    res = _ransac_ground(np.vstack([flat, pole]))
+    assert (res.tiles, res.splits) == (1, 0)
+    assert res.ground[:4000].mean() > 0.99 and not res.ground[4000:].any()
+    # a bowl 8 m deep at the corners departs from any plane: split on the residual alone
+    # (the inliers' spread, all within the threshold, could never pass max_residual)
+    bowl = np.column_stack([xy, 0.01 * ((xy[:, 0] - 20) ** 2 + (xy[:, 1] - 20) ** 2)])
+    alone = dict(min_inlier_ratio=0.0, max_relief=500.0)
+    assert _ransac_ground(bowl, **alone).splits >= 1
+    assert _ransac_ground(bowl, **alone, max_residual=50.0).splits == 0
+
+
+def test_ransac_tiles_keep_the_points_on_the_far_edges():
+    # an extent of whole tiles (80 m of 40 m tiles): the points at x or y = max fell in no
+    # tile's core and were never ground
+    g = np.mgrid[0:81, 0:81].reshape(2, -1).T.astype(float)
+    res = _ransac_ground(np.column_stack([g, np.zeros(len(g))]))
+    assert res.ground.all()
