@@ -116,12 +116,14 @@ class TilingConfig:
         0.2, "a tile whose ground fit keeps fewer points than this share is split again",
         min=0.0, max=1.0, unit="1")
     max_residual: float = param(
-        1.0, "a tile whose ground departs from its RANSAC plane by more than this (robust "
+        0.3, "a tile whose ground departs from its RANSAC plane by more than this (robust "
         "std of the lowest point of each cell of an eighth of the tile about the plane) is "
-        "split again", "m", min=0.01, max=50.0)
+        "split again (ISPRS, `ransac`: 1 m 25.6 % total error, 0.3 m 23.7 %)", "m",
+        min=0.01, max=50.0)
     max_relief: float = param(
         15.0, "a tile whose ground relief (max - min of the lowest point of each cell of an "
-        "eighth of the tile: trees and towers do not count) exceeds this is split again",
+        "eighth of the tile: trees and towers do not count) exceeds this is split again "
+        "(less splits a slope a plane holds, and a roof filling a small tile is its ground)",
         "m", min=0.5, max=500.0)
     max_depth: int = param(2, "how many times a poor tile may be split in four", "splits",
                            min=0, max=5)
