@@ -222,6 +222,13 @@ class ObstaclesConfig:
                                      "buildings", "m^2", min=1.0, max=10000.0, tunable=True)
     building_plane_threshold: float = param(0.2, "RANSAC distance threshold of roof/wall "
                                             "planes", "m", min=0.01, max=2.0, tunable=True)
+    marker_lifetime: float = param(2.0, "an object's box and label in `obstacle_markers` "
+                                   "vanish this long after their cloud unless a newer cloud "
+                                   "replaces them, so that RViz shows no stale obstacles once "
+                                   "the input stops; stretched to three times the interval "
+                                   "between the last two clouds' stamps (at most 60 s), so "
+                                   "that slow clouds do not blink; 0 keeps them until "
+                                   "replaced", "s", min=0.0, max=3600.0)
 
 
 @dataclass(frozen=True)

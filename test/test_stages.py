@@ -78,3 +78,39 @@ def test_frame_warnings_say_when_clouds_and_odometry_do_not_fit():
     # odometry without a child frame tells nothing
     anonymous = Pose(0, np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), "odom", "")
     assert moving_frame_warning("lidar_link", anonymous, True) is None
+
+
+def _box_scene(stamp_ns: int):
+    """A 40 m x 32 m flat cloud with a 5 m box on it: one obstacle object."""
+    points = np.zeros((40, 50), [("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    points["x"], points["y"] = np.meshgrid(np.arange(50) * 0.8, np.arange(40) * 0.8)
+    points["z"][10:16, 20:26] += 5.0
+    return messages.cloud(points.ravel(), messages.header(stamp_ns, "map"))
+
+
+def _lifetime(out) -> float:
+    """The one lifetime of a cloud's boxes and labels, s."""
+    array = dict(out)["obstacle_markers"]
+    added = [m for m in array.markers if m.action == m.ADD]
+    assert added, "the box should give markers"
+    lifetimes = {m.lifetime.sec * 1_000_000_000 + m.lifetime.nanosec for m in added}
+    assert len(lifetimes) == 1
+    return lifetimes.pop() * 1e-9
+
+
+@pytest.mark.parametrize("base, stamps_s, expected", [
+    (2.0, [10.0, 10.1, 10.2], [2.0, 2.0, 2.0]),      # 10 Hz: the parameter
+    (2.0, [10.0, 13.0, 14.0], [2.0, 9.0, 3.0]),      # a 3 s cloud: three intervals
+    (2.0, [10.0, 1000.0], [2.0, 60.0]),              # a gap in a bag: capped at a minute
+    (2.0, [10.0, 9.0], [2.0, 2.0]),                  # stamps going back: the parameter
+    (0.0, [10.0, 13.0], [0.0, 0.0]),                 # 0: until replaced
+])
+def test_markers_vanish_after_their_lifetime_stretched_for_slow_clouds(base, stamps_s,
+                                                                       expected):
+    """`obstacles.marker_lifetime`: the boxes and labels of a cloud carry the lifetime, at
+    least three times the interval between the last two stamps (up to 60 s), so stale
+    boxes leave RViz when the input stops and slow clouds' boxes do not blink."""
+    stage = DetectorStage(replace(ObstacleDetectorConfig(),
+                                  {"obstacles.marker_lifetime": base}))
+    got = [_lifetime(stage.process(_box_scene(round(s * 1e9)))[0]) for s in stamps_s]
+    assert got == pytest.approx(expected, abs=1e-6)

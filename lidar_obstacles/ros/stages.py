@@ -188,16 +188,34 @@ def _attr(points: np.ndarray, name: str) -> np.ndarray | None:
     return np.asarray(points[name]) if name in names else None
 
 
+# The markers' lifetime is stretched to three times the clouds' interval, up to this (s): a
+# gap in a bag (two flight lines 20 minutes apart) should not leave boxes for an hour.
+MARKER_STRETCH_MAX_S = 60.0
+
+
 class DetectorStage:
     """`obstacle_detector`'s work on one message."""
 
     def __init__(self, cfg: ObstacleDetectorConfig) -> None:
         self.cfg = cfg
         self.pipeline = ObstacleDetector(cfg)
+        self._last_marker_stamp_ns: int | None = None
 
     def reconfigure(self, cfg: ObstacleDetectorConfig) -> None:
         self.cfg = cfg
         self.pipeline.reconfigure(cfg)
+
+    def marker_lifetime(self, stamp_ns: int) -> float:
+        """Seconds the markers of the cloud stamped stamp_ns stay (`obstacles.marker_lifetime`,
+        0 = until replaced), stretched to three times the interval since the previous
+        cloud's stamp, at most MARKER_STRETCH_MAX_S: a `tin` cloud may take 3 s, and its
+        boxes should not vanish before the next replaces them. Called once per cloud, in
+        order."""
+        base = self.cfg.obstacles.marker_lifetime
+        last, self._last_marker_stamp_ns = self._last_marker_stamp_ns, stamp_ns
+        if base <= 0 or last is None or stamp_ns <= last:
+            return base
+        return max(base, min(3e-9 * (stamp_ns - last), MARKER_STRETCH_MAX_S))
 
     def process(self, msg, pose: Pose | None = None) -> tuple[list[tuple[str, object]], dict]:
         """Returns the messages to publish and a stats dict (points, timings)."""
@@ -230,7 +248,8 @@ class DetectorStage:
     def publish(self, work: DetectorWork, result: ObstacleResult, seconds: float
                 ) -> tuple[list[tuple[str, object]], dict]:
         """The messages of a classified cloud, with a stats dict (points, timings, the
-        seconds of all its work). Keeps no state."""
+        seconds of all its work). Called once per cloud, in order (the markers' lifetime
+        follows the clouds' interval)."""
         t0 = time.perf_counter()
         finite = work.finite
         n = len(work.points)
@@ -245,7 +264,8 @@ class DetectorStage:
         out: list[tuple[str, object]] = [
             ("ground", messages.cloud(select_points(out_points, ground), hdr)),
             ("obstacles", messages.cloud(select_points(out_points, ~ground), hdr)),
-            ("obstacle_markers", messages.markers(result.objects, hdr)),
+            ("obstacle_markers", messages.markers(result.objects, hdr,
+                                                  self.marker_lifetime(work.stamp_ns))),
         ]
         if result.clearance is not None:
             c = result.clearance
