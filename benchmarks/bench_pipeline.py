@@ -10,9 +10,12 @@
   binning; target p95 <= 50 ms), and per publish (gaps filled at `dem.publish_rate`).
 - memory: a long simulated flight through both stages in one process; resident memory after
   the first 10 % of the flight vs at the end (target growth < 10 %). `--minutes 30` is the
-  issue's flight; the default is shorter so `make bench` stays reasonable.
+  issue's flight; the default is shorter so `make bench` stays reasonable. With
+  `--memory-only` only this part runs, and writes pipeline_memory.json instead (the
+  30-minute flight takes ~30 minutes on one core).
 
     python benchmarks/bench_pipeline.py [--quick | --smoke --out DIR] [--minutes M]
+    python benchmarks/bench_pipeline.py --memory-only --minutes 30
 
 The live parts use the environment's ROS_DOMAIN_ID (the tests set one per run), else a
 random one of 1-101 (above 101, Linux's ephemeral ports may take a domain's). Writes
@@ -270,12 +273,22 @@ def main() -> None:
     reuse_freed_memory()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--minutes", type=float, default=None, help="memory-test flight length")
+    ap.add_argument("--memory-only", action="store_true",
+                    help="only the memory test; writes pipeline_memory.json")
     args = bench_args(__doc__, "short flights",
                       "2 s flights, memory sampled every 2 messages", ap)
     seconds = per_mode(args, 30.0, 10.0, 2.0)
     minutes = args.minutes if args.minutes is not None else per_mode(args, 5.0, 1.0, 2 / 60)
     # memory first: its peak is the process's, and the other parts hold whole flights
     memory = bench_memory(minutes, every=per_mode(args, 100, 100, 2))
+    if args.memory_only:
+        print(f"| measure | value | target |\n|---|---|---|\n"
+              f"| memory growth over {minutes:g} min (after the 10 s trims) | "
+              f"{memory['growth']:.3g} ({memory['rss_after_10pct_mb']} -> "
+              f"{memory['rss_end_mb']} MB) | < 0.10 |\n"
+              f"| peak memory growth over {minutes:g} min | {memory['peak_growth']:.3g} | - |")
+        (args.out / "pipeline_memory.json").write_text(json.dumps(memory, indent=2))
+        return
     live = seconds / 2
     res = {"replay": bench_replay(seconds), "dem_update": bench_dem_updates(seconds / 2),
            "live_latency": live_latency(live, args.out),

@@ -40,3 +40,21 @@ def test_smoke_refuses_the_committed_results(out):
                          cwd=REPO, capture_output=True, text=True, timeout=60)
     assert res.returncode == 2
     assert "--smoke needs --out DIR" in res.stderr
+
+
+@pytest.mark.slow
+def test_memory_only_run_writes_its_own_file(tmp_path):
+    """`bench_pipeline.py --memory-only` (the 30-minute flight's memory, on its own) writes
+    pipeline_memory.json with the growth, and no pipeline.json."""
+    res = subprocess.run([sys.executable, str(BENCH / "bench_pipeline.py"), "--smoke",
+                          "--memory-only", "--out", str(tmp_path)],
+                         cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-4000:]
+    import json
+
+    memory = json.loads((tmp_path / "pipeline_memory.json").read_text())
+    assert memory["messages"] == 20 and memory["rss_end_mb"] > 0
+    assert memory["growth"] == pytest.approx(memory["rss_end_mb"]
+                                             / memory["rss_after_10pct_mb"] - 1, abs=1e-3)
+    assert not (tmp_path / "pipeline.json").exists()
+    assert "memory growth over" in res.stdout
