@@ -87,7 +87,8 @@ class InputConfig:
                        "`points` subscription and of the node's inbox; a cloud pushed out is "
                        "counted, `dropped_superseded`): 1 processes the "
                        "newest cloud and drops one that waited (publish-to-obstacles latency "
-                       "p50/p95 116/190 ms at 10 Hz on 2 cores, 208/302 ms with depth 2); "
+                       "p50/p95 60/78 ms at 10 Hz on 2 cores in `bench_pipeline.py`; once "
+                       "116/190 ms against 208/302 ms with depth 2, the clouds waiting); "
                        "raise it to process every cloud when the machine keeps up",
                        "messages", min=1, max=100, read_only=True)
     max_points: int = param(2_000_000, "messages with more points are rejected", "points",
@@ -178,8 +179,10 @@ class RansacConfig:
 class ContextConfig:
     radius: float = param(100.0, "ground of earlier messages within this distance of the "
                           "new message is used as context (0: off). Measured on simulated "
-                          "flights: ground error 1.03/3.04/0.18 % off, 0.92/2.46/0.17 % on "
-                          "(mixed/urban/forest), ~15 ms more per 50k-point message",
+                          "flights (`bench_scan_ground.py`, mixed/corridor/forest/urban): "
+                          "objects taken for ground 7.2/1.20/0.31/0.65 % off, "
+                          "6.7/1.14/0.30/0.60 % on; 1-3 ms more per 50k-point message "
+                          "(12 ms on the urban flight)",
                           "m", min=0.0, max=2000.0)
     seconds: float = param(10.0, "ground older than this is forgotten", "s",
                            min=0.0, max=3600.0)
@@ -281,7 +284,7 @@ class FeaturesConfig:
         "`fast` float32 and points flat by PCA (l3/l2 < 0.05) taken as planes without "
         "clustering: 1.4-2.7 x faster on real scans (AHN4 buildings 3.5-4.0 -> 1.2-1.3 s "
         "per 10 000 points) and far fewer false features on noisy flat faces (precision "
-        "0.99 against 0.38 on a box with 2 cm noise)",
+        "0.99 against 0.40 on a box with 2 cm noise)",
         choices=("faithful", "fast"))
     reference: str = param(
         "local", "direction the triangle normals of a point are turned towards (those "
@@ -310,9 +313,9 @@ class SimplifyConfig:
     max_k: int = param(10, "the elbow sweep over the normals tries k = 1..max_k", min=2,
                        max=30, unit="clusters")
     restarts: int = param(3, "K-means++ runs per k, the lowest SSE kept (the paper: 100; on "
-                          "50 000 AHN4 first returns 3 runs on 5 000 normals gave the same k "
-                          "and r, 0.976 vs 0.975, in 118 ms instead of 767 ms for 10 runs on "
-                          "20 000)", min=1, max=1000, unit="runs")
+                          "50 000 AHN4 first returns 3 runs on 5 000 normals took 132 ms "
+                          "against 997 ms for 10 runs on 20 000, TIN raster r 0.974-0.976; "
+                          "`bench_simplify.py`)", min=1, max=1000, unit="runs")
     max_iter: int = param(3000, "Lloyd iterations per run (the paper: 3000)", min=1,
                           max=100000, unit="iterations")
     tol: float = param(1e-4, "relative centre shift that ends a run (the paper: 1e-4)",
@@ -338,8 +341,8 @@ class DemConfig:
     ground_source: str = param("detector", "where the DEM's ground comes from: `kmeans` "
                                "(intensity K-means + TIN outlier checks) or `detector` "
                                "(the obstacle detector's ground filter; the default: "
-                               "~15 x faster per message than kmeans, measured on the "
-                               "simulator)",
+                               "~25 ms per 50k-point message in `bench_pipeline.py`, "
+                               "against 1-2 s for kmeans)",
                                choices=("kmeans", "detector"))
     ground_band: float = param(0.15, "with the `detector` source, ground points more than "
                                "this above the detector's ground surface are left out of the "
@@ -361,7 +364,7 @@ class DemConfig:
         "they stand `patch_rise` above or `patch_sink` below the ground beside them: tree "
         "crowns and roofs taken for ground, clusters of low blunders (end-to-end RMSE, "
         "kriging: AHN corridor 07CZ2 0.32 -> 0.02 m, 12AN2 0.16 -> 0.05 m, ISPRS samp41 "
-        "3.8 -> 1.0 m; 0: keep them)", "m^2", min=0.0, max=100000.0)
+        "3.8 -> 0.76 m; 0: keep them)", "m^2", min=0.0, max=100000.0)
     patch_rise: float = param(
         1.0, "a ground patch more than this above the ground beside it is dropped (see "
         "`patch_area`)", "m", min=0.1, max=100.0)
@@ -472,7 +475,8 @@ class RbfnnConfig:
                           min=0.01, max=100.0, unit="1")
     max_neurons: int = param(200, "units added at most", min=1, max=5000, unit="units")
     max_train: int = param(10000, "the network trains on at most this many random samples "
-                           "(training costs samples x units^2; the paper trained on 9 724)",
+                           "(training costs samples x units^2; the paper trained on 70 % "
+                           "of its 9 724 thinned points)",
                            "points", min=10, max=10_000_000)
 
 

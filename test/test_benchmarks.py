@@ -58,3 +58,23 @@ def test_memory_only_run_writes_its_own_file(tmp_path):
                                              / memory["rss_after_10pct_mb"] - 1, abs=1e-3)
     assert not (tmp_path / "pipeline.json").exists()
     assert "memory growth over" in res.stdout
+
+
+@pytest.mark.slow
+def test_only_reruns_splice_their_sections_into_the_summary(tmp_path):
+    """`run_all.py --only NAME`: just that benchmark runs, and its section replaces the one
+    of the existing summary, marked as rerun; the other sections stay as they were."""
+    def run_all(*names):
+        res = subprocess.run([sys.executable, str(BENCH / "run_all.py"), "--smoke", "--out",
+                              str(tmp_path), "--only", *names],
+                             cwd=REPO, capture_output=True, text=True, timeout=300)
+        assert res.returncode == 0, res.stderr[-4000:]
+        return (tmp_path / "summary.md").read_text()
+
+    first = run_all("simulate", "pointcloud2")
+    assert first.startswith("# Benchmarks (") and "rerun alone" in first
+    kept = first[first.index("## simulate ("):]
+    second = run_all("pointcloud2")
+    assert second.index("## pointcloud2 (") < second.index("## simulate (")
+    assert second.endswith(kept)  # simulate's section untouched
+    assert second.count("## pointcloud2 (") == 1
