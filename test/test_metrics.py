@@ -281,3 +281,14 @@ def test_grid_values_at_is_exact_on_a_plane_with_origin_and_resolution():
     # outside the hull of the cell centres (x < 101 or y > 205): NaN
     assert np.isnan(M.grid_values_at(grid, [[100.9, 202.0], [103.0, 205.1]], resolution=res,
                                      origin=origin)).all()
+
+
+def test_by_code_counts_each_pair_of_reference_and_predicted_codes():
+    """`by_code`: the code-level cross table the groups hide (class 26, a crane, is `other`
+    like 1 and 7; here half of it became unclassified, half vegetation)."""
+    ref = [26, 26, 26, 26, 2, 2, 1, 7]
+    pred = [1, 1, 5, 5, 2, 2, 1, 1]
+    by_code = M.evaluate_classes(ref, pred)["by_code"]
+    assert by_code == {"1": {"1": 1}, "2": {"2": 2}, "7": {"1": 1}, "26": {"1": 2, "5": 2}}
+    assert sum(n for row in by_code.values() for n in row.values()) == len(ref)
+    assert json.loads(json.dumps(by_code)) == by_code

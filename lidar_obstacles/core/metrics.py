@@ -87,6 +87,10 @@ key                                          meaning
 ``safety.wire_as_ground``                    wire points predicted ground / wire points
 ``safety.tower_as_ground``                   tower points predicted ground / tower points
 ``safety.obstacle_as_ground``                both together
+``by_code.<reference code>.<predicted code>`` points of that reference ASPRS code predicted
+                                             as that code (nonzero pairs only; codes as
+                                             strings): where a class the groups lump
+                                             together went (the corridor's cranes, 26)
 ============================================ ================================================
 
 Other functions: :func:`grid_errors` (keys ``n``, ``rmse_m``, ``mae_m``, ``bias_m``,
@@ -146,6 +150,16 @@ def _as_codes(classes: Any, name: str) -> np.ndarray:
             f"{name}: class codes must lie in 0..255, got {codes.min()}..{codes.max()}"
         )
     return codes
+
+
+def code_crosstab(reference: np.ndarray, predicted: np.ndarray) -> dict[str, dict[str, int]]:
+    """{reference code: {predicted code: points}} of (N,) int64 ASPRS codes in 0..255, the
+    nonzero pairs only, codes as strings (JSON keys), in ascending order."""
+    pairs, counts = np.unique(reference * 256 + predicted, return_counts=True)
+    out: dict[str, dict[str, int]] = {}
+    for pair, n in zip(pairs.tolist(), counts.tolist()):  # at most 256 x 256 pairs
+        out.setdefault(str(pair // 256), {})[str(pair % 256)] = n
+    return out
 
 
 def group_of(classes: Any) -> np.ndarray:
@@ -475,6 +489,7 @@ def evaluate_classes(
             "tower_as_ground": _ratio(tower_hit, n_tower),
             "obstacle_as_ground": _ratio(wire_hit + tower_hit, n_wire + n_tower),
         },
+        "by_code": code_crosstab(ref_codes, pred_codes),
     }
 
 
