@@ -35,6 +35,7 @@ from lidar_obstacles.io.atomic import YAML, atomic_write_text, check_replaceable
 
 EARLY_STOP_MARGIN = 0.05  # a candidate this far below the best on the first input stops
 SAFETY_PENALTY = 10.0  # score lost per unit share of wire/tower points put in ground
+LOWER_IS_BETTER = {"total_error"}  # objectives the score negates
 
 
 def parse_budget(text: str) -> float:
@@ -116,24 +117,37 @@ def _dimension(name, low, high, choices, log, integer) -> Dimension:
 
 def score_input(inp: LabelledInput, cfg: ObstacleDetectorConfig, objective: str, *,
                 deadline: float | None = None) -> dict:
-    """Run the detector on one input and score it (higher is better). TimeoutError when
-    time.monotonic() passes `deadline` before the input is done."""
+    """Run the detector on one input and score it. Returns "score" (higher is better: the
+    objective, negated when lower is better, less SAFETY_PENALTY x the share of wire and
+    tower points put in ground), "objective" (the objective itself, in its own sign; None
+    when undefined), and the figures behind them. TimeoutError when time.monotonic()
+    passes `deadline` before the input is done."""
     from lidar_obstacles.core.metrics import evaluate_classes
 
     run_detector(inp, cfg, deadline=deadline)
     _, ref, pred = _concat(inp)
     m = evaluate_classes(ref, pred)
     go = m["ground_object"]
-    value = {"ground_kappa": go["kappa"], "kappa": m["kappa"],
-             "total_error": None if go["total_error"] is None else -go["total_error"]}[objective]
+    raw = {"ground_kappa": go["kappa"], "kappa": m["kappa"],
+           "total_error": go["total_error"]}[objective]
+    value = 0.0 if raw is None else -raw if objective in LOWER_IS_BETTER else raw
     unsafe = m["safety"]["obstacle_as_ground"] or 0.0
-    value = (value if value is not None else 0.0) - SAFETY_PENALTY * unsafe
-    return {"score": float(value), "ground_kappa": go["kappa"], "total_error": go["total_error"],
+    return {"score": float(value - SAFETY_PENALTY * unsafe), "objective": raw,
+            "ground_kappa": go["kappa"], "total_error": go["total_error"],
             "obstacle_as_ground": unsafe}
 
 
-def _mean_score(inputs: list[LabelledInput], cfg, objective) -> float:
-    return float(np.mean([score_input(i, cfg, objective)["score"] for i in inputs]))
+def _mean(values: list) -> float | None:
+    """The mean of the defined values (None when there are none)."""
+    defined = [v for v in values if v is not None]
+    return float(np.mean(defined)) if defined else None
+
+
+def _scored(inputs: list[LabelledInput], cfg, objective) -> dict:
+    """Mean score and mean objective of one configuration over `inputs`."""
+    runs = [score_input(i, cfg, objective) for i in inputs]
+    return {"score": _mean([r["score"] for r in runs]),
+            "objective": _mean([r["objective"] for r in runs])}
 
 
 def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
@@ -175,14 +189,15 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
                 cfg = replace(start, updates)
             except ConfigError:
                 continue  # a combination the schema rejects is simply not a candidate
-            scores = []
+            scores, objectives = [], []
             stopped = False
             # The budget holds inside a candidate too (between clouds), except for the
             # first, the start: there must be one scored candidate to write.
             try:
                 for i, inp in enumerate(inputs):
-                    scores.append(score_input(inp, cfg, objective,
-                                              deadline=t_end if trials else None)["score"])
+                    run = score_input(inp, cfg, objective, deadline=t_end if trials else None)
+                    scores.append(run["score"])
+                    objectives.append(run["objective"])
                     if i == 0 and len(inputs) > 1:  # (with one input it is complete)
                         if scores[0] < best_first - EARLY_STOP_MARGIN:
                             stopped = True
@@ -193,7 +208,8 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
             except TimeoutError:
                 break  # the budget ran out inside this candidate: it is not scored
             trial = {"params": updates, "score": float(np.mean(scores)),
-                     "first_input_score": scores[0], "stopped_early": stopped}
+                     "objective": _mean(objectives), "first_input_score": scores[0],
+                     "stopped_early": stopped}
             trials.append(trial)
             if not stopped and (best is None or trial["score"] > best["score"]):
                 best = trial
@@ -227,16 +243,22 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
         "params_file": str(out), "objective": objective, "trials": len(trials),
         "stopped_early": sum(t["stopped_early"] for t in trials),
         "start_score": trials[0]["score"], "best_score": best["score"],
+        "start_objective": trials[0]["objective"], "best_objective": best["objective"],
         "best_params": best["params"], "sensitivity": sensitivity,
         "inputs": [i.name for i in inputs],
     }
     if held_out:
+        before, after = _scored(held_out, start, objective), _scored(held_out, best_cfg,
+                                                                       objective)
         check = {"inputs": [i.name for i in held_out],
-                 "start_score": _mean_score(held_out, start, objective),
-                 "best_score": _mean_score(held_out, best_cfg, objective)}
-        check["improved"] = check["best_score"] >= check["start_score"]
+                 "start_score": before["score"], "best_score": after["score"],
+                 "start_objective": before["objective"], "best_objective": after["objective"],
+                 # the same configuration scores the same: neither better nor worse
+                 "unchanged": best["params"] == trials[0]["params"]
+                 or after["score"] == before["score"]}
+        check["improved"] = not check["unchanged"] and after["score"] > before["score"]
         summary["validation"] = check
-        if not check["improved"]:
+        if not check["improved"] and not check["unchanged"]:
             print(f"tune: warning: the best candidate scores {check['best_score']:.4f} on the "
                   f"held-out inputs, the start {check['start_score']:.4f}: it may fit only "
                   f"the tuning inputs ({out} is written all the same)", file=sys.stderr)

@@ -386,7 +386,7 @@ def test_tune_on_one_input_scores_every_candidate_and_warns_when_held_out_is_wor
     def score(inp, cfg, objective, deadline=None):
         held = inp.name == "held.laz"
         value = (0.8 if cfg == start else 0.7) if held else next(scores)
-        return {"score": value}
+        return {"score": value, "objective": value}
 
     start = tune.ObstacleDetectorConfig()
     monkeypatch.setattr(tune, "score_input", score)
@@ -400,6 +400,20 @@ def test_tune_on_one_input_scores_every_candidate_and_warns_when_held_out_is_wor
     assert summary["validation"]["improved"] is False
     assert "held-out" in capsys.readouterr().err
     assert (tmp_path / "t.yaml").exists()
+
+
+def test_tune_reports_a_lower_is_better_objective_in_its_own_sign(tmp_path):
+    """`--objective total_error`: the score is the error negated (higher is better), the
+    objective is the total error itself, and a start that stays the best is `unchanged`
+    on the held-out input, not `improved` (it said improved, with negative errors)."""
+    summary = run_cli("tune", data_file("isprs/samp24-utm.laz"), "--validate",
+                      data_file("isprs/samp21-utm.laz"), "--objective", "total_error",
+                      "--trials", "1", "--out", tmp_path / "t.yaml")
+    assert 0 < summary["start_objective"] == summary["best_objective"] < 0.2
+    assert summary["best_score"] == pytest.approx(-summary["best_objective"])
+    check = summary["validation"]
+    assert 0 < check["best_objective"] == check["start_objective"] < 0.2
+    assert check["unchanged"] is True and check["improved"] is False
 
 
 def test_tune_never_writes_over_a_file_of_another_kind(tmp_path):
