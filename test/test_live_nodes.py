@@ -134,10 +134,11 @@ def test_nodes_process_a_played_flight(flight, ros_node, tmp_path):
     dem = _start("lidar_obstacles.scripts.dem_builder", "-p", "dem.publish_rate:=2.0",
                  "-p", f"export.path:={tmp_path / 'live_dem.tif'}")
     try:
-        # Wait until both nodes are up (their diagnostics arrive), then play.
+        # Wait until both nodes are up (their diagnostics arrive), then play. Their statuses
+        # are named with the namespace: two vehicles share the global /diagnostics.
         assert _spin_until(ros_node, lambda: {s.name.split(":")[0] for d in got["diag"]
-                                              for s in d.status} >= {"obstacle_detector",
-                                                                     "dem_builder"}, 60)
+                                              for s in d.status} >= {"uav1/obstacle_detector",
+                                                                     "uav1/dem_builder"}, 60)
         env = dict(os.environ, ROS_NAMESPACE=NS)
         player = subprocess.Popen(
             # Half real time: both nodes share 2 cores with the test.
@@ -149,7 +150,7 @@ def test_nodes_process_a_played_flight(flight, ros_node, tmp_path):
 
         def status() -> dict[str, str]:  # the detector's newest diagnostics
             return {kv.key: kv.value for d in got["diag"] for s in d.status
-                    if s.name.startswith("obstacle_detector") for kv in s.values}
+                    if s.name.startswith("uav1/obstacle_detector") for kv in s.values}
 
         _spin_until(ros_node, lambda: len(got["obstacles"]) >= 30 and got["dem_info"]
                     and int(status()["processed"]) >= 30, 60)
@@ -178,7 +179,7 @@ def test_nodes_process_a_played_flight(flight, ros_node, tmp_path):
 
         def dem_status() -> dict[str, str]:  # the DEM builder's newest diagnostics
             return {kv.key: kv.value for d in got["diag"] for s in d.status
-                    if s.name.startswith("dem_builder") for kv in s.values}
+                    if s.name.startswith("uav1/dem_builder") for kv in s.values}
 
         # the DEM measured at the ground points it held out (`thinning.check_points`)
         assert _spin_until(ros_node, lambda: dem_status().get("check_n", "0") != "0", 10)
@@ -321,7 +322,7 @@ def test_runtime_parameters_and_malformed_clouds(ros_node):
 
         def rejected() -> int:
             vals = [kv.value for d in diag for s in d.status
-                    if s.name.startswith("obstacle_detector") for kv in s.values
+                    if s.name.startswith("uav1/obstacle_detector") for kv in s.values
                     if kv.key == "rejected"]
             return int(vals[-1]) if vals else 0
 

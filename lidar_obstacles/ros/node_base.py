@@ -354,7 +354,11 @@ class PipelineNode(Node):
     # ---------------------------------------------------------------- diagnostics
     def _publish_diagnostics(self) -> None:
         self.diag_pub.publish(messages.diagnostics(
-            self._diag_header(), self.get_name(), self.get_fully_qualified_name(),
+            # named by the node's namespace too ("uav1/obstacle_detector: processing"): two
+            # vehicles' nodes share the global /diagnostics, and monitors tell them apart
+            # by name (hardware_id stays the fully qualified name)
+            self._diag_header(), self.get_fully_qualified_name().lstrip("/"),
+            self.get_fully_qualified_name(),
             # copies: the worker thread counts while this (the executor's) thread reads, and
             # a new reason meanwhile stopped the node ("dictionary changed size")
             dict(self.stats), dict(self.reject_reasons), list(self.latencies),
