@@ -146,6 +146,18 @@ def test_only_a_bag_is_ever_overwritten(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt", "photos"]
 
 
+@pytest.mark.parametrize("kind", ["folder", "file"])
+def test_an_empty_folder_or_file_becomes_the_bag(tmp_path, kind):
+    """`mkdir out/flight; las2bag ... out/flight`: nothing is lost by replacing nothing (it
+    was refused as "not a bag")."""
+    target = tmp_path / "out"
+    target.mkdir() if kind == "folder" else target.touch()
+    _write(target, [_points(10)])
+    with BagReader(target) as reader:
+        assert reader.count(["/points"]) == 1
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
 def test_failed_write_leaves_nothing_and_keeps_the_old_bag(tmp_path):
     _write(tmp_path / "bag", [_points(10)])
     before = sorted(p.name for p in (tmp_path / "bag").iterdir())

@@ -198,6 +198,19 @@ def test_an_output_that_is_the_input_is_refused_before_any_work(args, tmp_path, 
     assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
 
 
+@pytest.mark.parametrize("command", ["replay", "simplify"])
+def test_an_output_inside_the_input_bag_is_refused(command, tmp_path, capsys):
+    # `replay b b/sub` wrote a second bag into the first, exit 0
+    bag = tmp_path / "bag"
+    assert main(["simulate", str(bag), "--duration", "0.1", "--points", "300"]) == 0
+    capsys.readouterr()
+    before = sorted(p.name for p in bag.iterdir())
+    assert main([command, str(bag), str(bag / "sub")]) == 2
+    assert capsys.readouterr().err == (f"lidar-obstacles {command}: error: {bag / 'sub'} lies "
+                                       f"inside the input {bag}: write it elsewhere\n")
+    assert sorted(p.name for p in bag.iterdir()) == before
+
+
 def test_a_topic_named_relative_is_the_root_namespaces(tmp_path, capsys):
     # `--topic points` was "no PointCloud2 topic 'points' (it has: /points)"
     bag = tmp_path / "bag"

@@ -189,6 +189,14 @@ class BagReader:
             raise BagError(f"bag {self.path} is truncated or corrupt: {text}") from None
 
 
+def _empty(path: Path) -> bool:
+    """An empty folder, or a file of no bytes."""
+    try:
+        return not any(path.iterdir()) if path.is_dir() else path.stat().st_size == 0
+    except OSError:
+        return False
+
+
 class BagWriter:
     """Write a rosbag2 (mcap by default, sqlite3 on request) atomically.
 
@@ -216,8 +224,10 @@ class BagWriter:
 
         if not self.path.parent.is_dir():
             raise BagError(f"output folder does not exist: {self.path.parent}")
-        # Only a bag is replaced: a folder of something else, or a file, is the user's data.
-        if self.path.exists() and not (self.path / "metadata.yaml").is_file():
+        # Only a bag, or nothing (an empty folder or file), is replaced: a folder of
+        # something else, or a file with content, is the user's data.
+        if self.path.exists() and not (self.path / "metadata.yaml").is_file() \
+                and not _empty(self.path):
             raise BagError(f"{self.path} exists and is not a bag: not overwriting it")
         remove_stale_partials(self.path)
         try:
