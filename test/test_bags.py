@@ -197,6 +197,13 @@ def test_bad_bags_raise_one_clear_error(tmp_path):
     short.write_bytes(mcap.read_bytes()[: mcap.stat().st_size * 2 // 3])
     with pytest.raises(BagError, match="mcap file ends early .*mcap recover"):
         BagReader(tmp_path / "unfinished").__enter__()
+    # A metadata.yaml that is not rosbag2's: said so, without the YAML parser's internals
+    (tmp_path / "foreign").mkdir()
+    (tmp_path / "foreign" / "metadata.yaml").write_text("junk\n")
+    with pytest.raises(BagError) as err:
+        BagReader(tmp_path / "foreign").__enter__()
+    assert str(err.value) == (f"cannot open bag {tmp_path / 'foreign'}: its metadata.yaml is "
+                              "not rosbag2 metadata (a bag's index of its topics and files)")
     # A bag without clouds.
     with BagWriter(tmp_path / "odom_only") as bag:
         bag.add_topic("/odom", "nav_msgs/msg/Odometry")

@@ -109,6 +109,10 @@ class BagReader:
                         f"closed: {text.rstrip('.')}); `mcap recover` rebuilds what it holds")
             elif "expected metadata file" in text.lower():
                 text = "not a bag: neither a rosbag2 folder (no metadata.yaml) nor a ROS 1 .bag"
+            elif "invalid bag metadata" in text.lower():
+                # (rosbags adds what its parser met: "string indices must be integers")
+                text = ("its metadata.yaml is not rosbag2 metadata (a bag's index of its "
+                        "topics and files)")
             elif path.is_file() and path.suffix == ".bag":
                 text = _ros1_misnamed(path) or text
             raise BagError(f"cannot open bag {self.path}: {text}") from None
