@@ -95,7 +95,10 @@ _DEFAULT_PARAMS = "(default: none, the defaults in config/*.yaml)"
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from lidar_obstacles import __version__
+
     p = _Parser(prog="lidar-obstacles", description=__doc__.splitlines()[0])
+    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     p.commands = sub.choices  # type: ignore[attr-defined]  (name -> its parser)
 

@@ -854,7 +854,12 @@ def write_config_files(folder: str | Path) -> list[Path]:
 
 
 if __name__ == "__main__":
-    # Regenerate config/*.yaml and docs/parameters.md from the schema.
+    import argparse
+
+    argparse.ArgumentParser(
+        prog="python -m lidar_obstacles.config",
+        description="Regenerate config/*.yaml and docs/parameters.md from the schema, in "
+                    "the current folder (the repository's root)").parse_args()
     for written_path in write_config_files("config"):
         print(written_path)
     Path("docs").mkdir(exist_ok=True)

@@ -229,3 +229,12 @@ def test_play_names_the_topics_the_bag_lacks(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith(f"lidar-obstacles play: error: bag {bag} has no topic /pointz "
                           "(it has: ") and "/points" in err and err.count("\n") == 1
+
+
+def test_version(capsys):
+    from lidar_obstacles import __version__
+
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0
+    assert capsys.readouterr().out == f"lidar-obstacles {__version__}\n"

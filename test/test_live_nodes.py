@@ -434,7 +434,8 @@ def test_a_second_signal_stops_a_node_busy_with_a_cloud_at_once_and_cleanly(seco
     # rclpy's own text named the parameter three times and the value twice
     (["-p", "tiling.size:=-5.0"], "parameter 'tiling.size' = -5.0: not in its range [5, 1000] m"),
     (["-p", "tiling.size:=abc"], "parameter 'tiling.size' = 'abc': not a number"),
-    (["-p", "tiling.sise:=40.0"], "unknown parameter 'tiling.sise' (see docs/parameters.md)"),
+    (["-p", "tiling.sise:=40.0"],
+     "unknown parameter 'tiling.sise' (`obstacle_detector --help` lists the parameters)"),
     # and rcl added a line of its own, "[ERROR] [...] [rcl]: Failed to parse global arguments"
     (["--params-file", "/nonexistent.yaml"], "params file /nonexistent.yaml not found"),
     # the input's QoS follows its publishers: an override of it would do nothing

@@ -86,3 +86,21 @@ def test_a_node_run_as_a_module_where_no_executable_is_installed_stops_cleanly_t
     said = [x for x in err.splitlines()
             if not x.startswith("import time:") and not re.match(r"\[(INFO|WARN)\]", x)]
     assert said in ([], [f"{name}: interrupted"]), said
+
+
+@pytest.mark.parametrize("name", sorted(NODES))
+def test_help_prints_the_topics_and_parameters_without_starting_the_node(name):
+    """`obstacle_detector --help` started the node (it ran until killed). Now it prints the
+    usage, the topics and every parameter of the schema with its default, and exits 0
+    without importing rclpy; after --ros-args, -h is ROS's business and is passed on."""
+    from lidar_obstacles.config import NODE_CONFIGS, params_of
+
+    res = subprocess.run([sys.executable, "-c", f"import sys; from {NODES[name]} import main; "
+                          "code = main(['--help']); "
+                          "assert 'rclpy' not in sys.modules; sys.exit(code)"],
+                         cwd=REPO, capture_output=True, text=True, timeout=30)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.startswith(f"usage: {name} [--ros-args")
+    assert "subscribes: points (PointCloud2)" in res.stdout
+    listed = re.findall(r"^  ([\w.]+) = ", res.stdout, re.MULTILINE)
+    assert listed == [info.name for info in params_of(NODE_CONFIGS[name])]

@@ -85,7 +85,9 @@ def declare_config(node: Node, cls: type) -> Any:
     all_known = {p.name for c in NODE_CONFIGS.values() for p in params_of(c)}
     unknown = sorted(n for n in overrides if n not in all_known and not _ros_own(n))
     if unknown:
-        raise ConfigError(f"unknown parameter '{unknown[0]}' (see docs/parameters.md)")
+        executable = next((k for k, c in NODE_CONFIGS.items() if c is cls), node.get_name())
+        raise ConfigError(f"unknown parameter '{unknown[0]}' (`{executable} --help` lists "
+                          "the parameters)")
     # outputs take qos_overrides (node_base.create_output); the input's QoS follows its
     # publishers, and an override of it would do nothing
     inputs = sorted(n for n in overrides if n.startswith("qos_overrides.")

@@ -30,11 +30,51 @@ def _on_signal(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
+# What each node does, and its topics (relative names), for --help.
+_ABOUT = {
+    "obstacle_detector": ("ground, obstacles and their classes, markers and a clearance grid "
+                          "of every cloud",
+                          "points (PointCloud2), odom (Odometry, with use_odometry)",
+                          "ground, obstacles, obstacle_edges (PointCloud2), obstacle_markers "
+                          "(MarkerArray), clearance (OccupancyGrid), /diagnostics"),
+    "dem_builder": ("a rolling DEM of the ground of every cloud",
+                    "points (PointCloud2), odom (Odometry, with use_odometry)",
+                    "dem (PointCloud2), dem_image (Image), dem_info (MapMetaData), "
+                    "/diagnostics; service save_dem (Trigger: a GeoTIFF)"),
+    "cloud_simplifier": ("every cloud simplified by K-means++ on its normals",
+                         "points (PointCloud2)", "points_simplified (PointCloud2), "
+                         "/diagnostics"),
+}
+
+
+def usage(name: str) -> str:
+    """`<node> --help`: what the node does, its topics and every parameter with its default
+    and unit (from the config schema, which imports no ROS)."""
+    from lidar_obstacles.config import NODE_CONFIGS, params_of
+
+    about, inputs, outputs = _ABOUT[name]
+    lines = [f"usage: {name} [--ros-args [-p NAME:=VALUE]... [--params-file FILE] "
+             "[-r __ns:=/NS] [-r points:=TOPIC]...]", "",
+             f"ROS 2 node: {about}.", f"  subscribes: {inputs}", f"  publishes:  {outputs}",
+             "", "parameters (default, unit; descriptions and ranges in "
+             f"share/lidar_obstacles/config/{name}.yaml, or `ros2 param describe`):"]
+    for info in params_of(NODE_CONFIGS[name]):
+        unit = f" {info.spec.unit}" if info.spec.unit not in ("", "1") else ""
+        lines.append(f"  {info.name} = {info.default!r}{unit}")
+    return "\n".join(lines) + "\n"
+
+
 def start(name: str, args: list[str] | None) -> int:
     """Run node `name` (its module in lidar_obstacles.ros, whose ``main`` takes the
-    command line `args`) and return its exit status. The node's own handlers
+    command line `args`) and return its exit status; with -h or --help before any
+    --ros-args, print :func:`usage` instead. The node's own handlers
     (:class:`~lidar_obstacles.ros.node_base.StopSignals`) take over from these once it is
     imported."""
+    argv = sys.argv[1:] if args is None else args
+    ours = argv[:argv.index("--ros-args")] if "--ros-args" in argv else argv
+    if "-h" in ours or "--help" in ours:
+        sys.stdout.write(usage(name))
+        return 0
     # Ctrl-C as Python has it, also where a shell started the node in the background with
     # SIGINT ignored (`kill -INT` then stops it, as it does the running node); SIGTERM too.
     _RECEIVED.clear()  # (of an earlier call in this process)
