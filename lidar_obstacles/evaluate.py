@@ -269,6 +269,11 @@ def evaluate(src: str | Path, *, params_file: str | Path | None = None,
     latencies: list[float] = []
     if inp.kind != "replay_bag":
         latencies = run_detector(inp, det_cfg, progress=True)
+    elif params_file is not None:  # the classes are the replay's, found with its parameters
+        log.warning("evaluate: %s is a replay's output, whose classes are scored as they "
+                    "are: the detector's parameters of %s do not apply (%s)", inp.name,
+                    params_file, "its DEM parameters do" if with_dem else "nor, with "
+                    "--no-dem, its DEM parameters")
     xyz, ref, pred = _concat(inp)
     codes = np.unique(ref)
     if len(codes) == 1:  # a raw survey's "unclassified" everywhere: figures of nothing

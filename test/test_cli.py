@@ -238,3 +238,12 @@ def test_version(capsys):
         main(["--version"])
     assert stop.value.code == 0
     assert capsys.readouterr().out == f"lidar-obstacles {__version__}\n"
+
+
+def test_a_bad_crs_is_refused_before_the_work_naming_the_option(tmp_path, capsys):
+    # it was said after the whole bag was processed, as "parameter 'export.crs'"
+    code = main(["export-dem", str(tmp_path / "no_bag"), str(tmp_path / "o.tif"),
+                 "--crs", "foo"])
+    assert code == 2
+    assert capsys.readouterr().err == (
+        "lidar-obstacles export-dem: error: --crs: 'foo' is neither EPSG:<code> nor WKT\n")

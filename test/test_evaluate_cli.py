@@ -425,3 +425,17 @@ def test_tune_never_writes_over_a_file_of_another_kind(tmp_path):
     assert res.stderr == (f"lidar-obstacles tune: error: {notes} exists and is not a YAML "
                           "mapping: not overwriting it\n")
     assert notes.read_text() == "precious\n"
+
+
+def test_evaluate_says_a_replay_bag_is_scored_without_the_detector_parameters(tmp_path):
+    # `evaluate OUT --params-file tuned.yaml` on a replay's output: exit 0, no word that
+    # the tuned detector parameters changed nothing
+    run_cli("simulate", tmp_path / "flight", "--duration", "0.3", "--points", "2000")
+    run_cli("replay", tmp_path / "flight", tmp_path / "out", "--no-dem")
+    params = tmp_path / "p.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    tiling:\n      size: 50.0\n")
+    res = cli_subprocess("evaluate", tmp_path / "out", "--params-file", params, "--no-dem")
+    assert res.returncode == 0
+    assert "the detector's parameters of" in res.stderr and "do not apply" in res.stderr
+    res = cli_subprocess("evaluate", tmp_path / "out", "--no-dem")
+    assert res.returncode == 0 and "do not apply" not in res.stderr

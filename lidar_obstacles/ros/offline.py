@@ -20,7 +20,7 @@ import numpy as np
 
 from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
 from lidar_obstacles.core.arrays import release_free_memory, reuse_freed_memory
-from lidar_obstacles.errors import BagError, CloudFormatError, LasError, count_reason
+from lidar_obstacles.errors import BagError, CloudFormatError, ConfigError, LasError, count_reason
 from lidar_obstacles.core.pipeline import GroundStep, ObstacleResult
 from lidar_obstacles.io.bags import (CRS_TOPIC, ODOMETRY, POINTCLOUD2, BagReader, BagWriter,
                                      TopicInfo, read_crs)
@@ -926,6 +926,11 @@ def export_dem(src: Path, out: Path, *, topic: str | None = None,
     from lidar_obstacles.io.geotiff import write_geotiff, write_hillshade_png
 
     png = out.with_name(out.stem + "_hillshade.png")
+    if crs is not None:  # said before the work, naming the option the user gave
+        try:
+            parse_crs(crs)
+        except ConfigError as exc:
+            raise ConfigError(str(exc).replace("parameter 'export.crs'", "--crs")) from None
     check_replaceable(out, TIFF)  # said before the work, and before either is written
     check_replaceable(png, PNG)
     # offline the DEM covers the whole survey, unless the params file sets `dem.extent`
