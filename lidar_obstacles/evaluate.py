@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from lidar_obstacles.config import DemBuilderConfig, NodeInputConfig, ObstacleDetectorConfig
+from lidar_obstacles.config import (DemBuilderConfig, NodeInputConfig, ObstacleDetectorConfig,
+                                    replace)
 from lidar_obstacles.core.classes import GROUND
 from lidar_obstacles.errors import (BagError, CloudFormatError, LasError, LidarObstaclesError,
                                     count_reason)
@@ -35,13 +36,15 @@ PUBLISHED_TOTAL_ERROR = {"Axelsson PTD (2000)": 4.82, "CSF (2016)": 4.39,
 @dataclass
 class LabelledCloud:
     """One cloud of a labelled input. xyz: (N, 3) float64 m; reference: (N,) uint8 ASPRS;
-    predicted: (N,) uint8 or None when the pipeline has not run."""
+    predicted: (N,) uint8 or None when the pipeline has not run; height_above_ground: (N,)
+    float32 m, the detector's, or None (a replay made before the field, or not run)."""
 
     stamp: float
     xyz: np.ndarray
     reference: np.ndarray
     predicted: np.ndarray | None = None
     vehicle: np.ndarray | None = None
+    height_above_ground: np.ndarray | None = None
 
 
 @dataclass
@@ -67,8 +70,11 @@ def _from_points(points: np.ndarray, stamp: float, xyz: np.ndarray | None = None
     if "classification" not in names:
         raise CloudFormatError("clouds have no 'classification' field to evaluate against")
     pred = np.asarray(points["class"], np.uint8) if "class" in names else None
+    hag = (np.asarray(points["height_above_ground"], np.float32)
+           if pred is not None and "height_above_ground" in names else None)
     return LabelledCloud(stamp, xyz_of(points) if xyz is None else xyz,
-                         np.asarray(points["classification"], np.uint8), pred)
+                         np.asarray(points["classification"], np.uint8), pred,
+                         height_above_ground=hag)
 
 
 def load_input(path: str | Path, *, topic: str | None = None,
@@ -206,7 +212,7 @@ def run_detector(inp: LabelledInput, cfg: ObstacleDetectorConfig, *,
         t0 = time.perf_counter()
         res = det.process(c.xyz, stamp=c.stamp, vehicle_xyz=c.vehicle)
         latencies.append(time.perf_counter() - t0)
-        c.predicted = res.classes
+        c.predicted, c.height_above_ground = res.classes, res.height_above_ground
     return latencies
 
 
@@ -215,29 +221,47 @@ def _concat(inp: LabelledInput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     points far from their cloud (:func:`far_points`): a blunder kilometres off, which
     the detector calls noise, would stretch the blocks, the DEM and the maps over the
     distance (at 1e20 m the maps could not be drawn)."""
+    xyz, ref, pred, _ = _concat_all(inp)
+    return xyz, ref, pred
+
+
+def _concat_all(inp: LabelledInput
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """:func:`_concat`, and the (N,) heights above ground of the same points (None when a
+    cloud has none)."""
     from lidar_obstacles.core.ground import far_points
 
     near = np.concatenate([~far_points(c.xyz) for c in inp.clouds])
     xyz = np.concatenate([c.xyz for c in inp.clouds])[near]
     ref = np.concatenate([c.reference for c in inp.clouds])[near]
     pred = np.concatenate([c.predicted for c in inp.clouds])[near]  # type: ignore[misc]
-    return xyz, ref, pred
+    hags = [c.height_above_ground for c in inp.clouds]
+    hag = None if any(h is None for h in hags) else np.concatenate(hags)[near]
+    return xyz, ref, pred, hag
 
 
 def dem_comparison(xyz: np.ndarray, reference: np.ndarray, predicted: np.ndarray, *,
+                   height_above_ground: np.ndarray | None = None,
                    cfg: DemBuilderConfig | None = None, check_points: int = 100,
                    seed: int = 0) -> dict:
     """DEM from the predicted ground vs DEM from the reference ground, same grid, same
-    interpolator; plus errors at `check_points` reference ground points held out of both.
+    interpolator, over the cells inside the data (holding a point of any class: the
+    interpolator's reach beyond the survey is not the ground's error); plus errors at
+    up to `check_points` reference ground points held out of both. With the detector's
+    height_above_ground (N,) m, the predicted ground is what `dem_builder` builds on, its
+    bare earth (`dem.ground_band`, `dem.patch_*`), as `bench_dem.py` compares it.
 
     Returns {"grid": grid_errors, "check_points": grid_errors, "reference_dem": DemGrid,
     "predicted_dem": DemGrid} (the grids for pictures; not JSON)."""
     from lidar_obstacles.core.dem import build_dem
     from lidar_obstacles.core.metrics import GROUND_CODES, grid_errors, grid_values_at
+    from lidar_obstacles.core.pipeline import bare_earth_of
 
     cfg = cfg or DemBuilderConfig()
     ref_ground = np.isin(reference, GROUND_CODES)
     pred_ground = predicted == GROUND
+    if height_above_ground is not None:
+        pred_ground = bare_earth_of(xyz, pred_ground, height_above_ground, cfg.dem)
     rng = np.random.default_rng(seed)
     idx = np.flatnonzero(ref_ground)
     held = rng.choice(idx, size=min(check_points, len(idx) // 10), replace=False) \
@@ -247,7 +271,10 @@ def dem_comparison(xyz: np.ndarray, reference: np.ndarray, predicted: np.ndarray
     lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
     ref_dem = build_dem(xyz[ref_ground & keep], cfg=cfg, bounds=(lo, hi))
     pred_dem = build_dem(xyz[pred_ground & keep], cfg=cfg, bounds=(lo, hi))
-    out: dict[str, Any] = {"grid": grid_errors(ref_dem.elevation, pred_dem.elevation),
+    inside = build_dem(xyz, cfg=replace(cfg, {"dem.fill_distance": 0.0}),
+                       bounds=(lo, hi)).count > 0
+    out: dict[str, Any] = {"grid": grid_errors(np.where(inside, ref_dem.elevation, np.nan),
+                                               pred_dem.elevation),
                            "reference_dem": ref_dem, "predicted_dem": pred_dem}
     if len(held):
         est = grid_values_at(pred_dem.elevation, xyz[held, :2],
@@ -274,7 +301,7 @@ def evaluate(src: str | Path, *, params_file: str | Path | None = None,
                     "are: the detector's parameters of %s do not apply (%s)", inp.name,
                     params_file, "its DEM parameters do" if with_dem else "nor, with "
                     "--no-dem, its DEM parameters")
-    xyz, ref, pred = _concat(inp)
+    xyz, ref, pred, hag = _concat_all(inp)
     codes = np.unique(ref)
     if len(codes) == 1:  # a raw survey's "unclassified" everywhere: figures of nothing
         log.warning("evaluate: every reference point of %s has class %d: is it labelled? "
@@ -287,7 +314,7 @@ def evaluate(src: str | Path, *, params_file: str | Path | None = None,
     metrics.update(evaluate_classes(ref, pred, xy=xyz[:, :2], blocks=blocks))
     dem = None
     if with_dem:
-        dem = dem_comparison(xyz, ref, pred, cfg=dem_cfg)
+        dem = dem_comparison(xyz, ref, pred, height_above_ground=hag, cfg=dem_cfg)
         metrics["dem"] = {"grid": dem["grid"], "check_points": dem.get("check_points")}
     if latencies:
         metrics["latency"] = latency_stats(latencies)

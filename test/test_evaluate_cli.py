@@ -439,3 +439,15 @@ def test_evaluate_says_a_replay_bag_is_scored_without_the_detector_parameters(tm
     assert "the detector's parameters of" in res.stderr and "do not apply" in res.stderr
     res = cli_subprocess("evaluate", tmp_path / "out", "--no-dem")
     assert res.returncode == 0 and "do not apply" not in res.stderr
+
+
+@pytest.mark.slow
+def test_evaluate_dem_is_compared_as_dem_builder_builds_it_inside_the_survey():
+    """`evaluate`'s DEM figure is bench_dem's end-to-end one: the detector's bare earth
+    (what dem_builder builds on) against the reference ground's DEM, over the cells that
+    hold a point. It compared the raw ground class over the interpolated surroundings too:
+    AHN4 RMSE 0.239 m against the 0.088 m the README gives (the issue's target: 0.15 m)."""
+    m = run_cli("evaluate", data_file("ahn4/ahn_2496_9727.laz"))
+    grid = m["dem"]["grid"]
+    assert grid["rmse_m"] < 0.1, grid
+    assert 2000 < grid["n"] < 3500, grid  # cells holding a point, not the whole square

@@ -82,8 +82,8 @@ def check_replaceable(path: str | Path, kind: Kind) -> None:
 def check_not_input(out: str | Path, inputs: list[str | Path]) -> None:
     """Raise OutputError when `out` is one of `inputs` (the same file or folder, by any
     name: a link, a relative path), a folder holding one (a bag's folder and its .mcap),
-    or lies inside an input folder (a bag's folder would hold a second bag, which readers
-    of the first then meet): writing it would destroy or spoil what is being read."""
+    or lies inside an input bag's folder (which would hold a second bag, and readers of
+    the first meet its files): writing it would destroy or spoil what is being read."""
     out_path = Path(os.path.abspath(out))
     for src in inputs:
         src_path = Path(os.path.abspath(src))
@@ -92,7 +92,8 @@ def check_not_input(out: str | Path, inputs: list[str | Path]) -> None:
         if same or out_path.resolve() in src_path.resolve().parents:
             raise OutputError(f"{out} is the input {src}"
                               f"{'' if same else ' (it holds it)'}: not overwriting it")
-        if src_path.is_dir() and src_path.resolve() in out_path.resolve().parents:
+        if (src_path / "metadata.yaml").is_file() \
+                and src_path.resolve() in out_path.resolve().parents:
             raise OutputError(f"{out} lies inside the input {src}: write it elsewhere")
 
 
