@@ -689,14 +689,43 @@ def _yaml_problem(exc: Any) -> str:
     return where + (exc.problem or str(exc))
 
 
+# A float as YAML 1.2 and rcl (the nodes' params parser) read one: a decimal point or an
+# exponent, or both ("1e-6", "2.", ".5", "1.5E+3"), and .inf / .nan. PyYAML follows YAML
+# 1.1, whose floats need a point and a signed exponent: it read `tol: 1e-6` as a string,
+# so `replay` refused a params file the nodes load (and our own dump of 1e-05).
+_YAML12_FLOAT = re.compile(r"""^[-+]?(?:
+      [0-9][0-9_]*\.[0-9_]*(?:[eE][-+]?[0-9]+)?        # a point, perhaps an exponent
+    | \.[0-9][0-9_]*(?:[eE][-+]?[0-9]+)?               # .5
+    | [0-9][0-9_]*[eE][-+]?[0-9]+                      # an exponent without a point
+    | \.(?:inf|Inf|INF) )$|^\.(?:nan|NaN|NAN)$""", re.VERBOSE)
+
+
+def _yaml_loader() -> type:
+    """PyYAML's safe loader, reading floats as YAML 1.2 does (_YAML12_FLOAT)."""
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    # Replace the YAML 1.1 float rule (each first character's list is tried in order, the
+    # integers first, so "40" stays an integer).
+    Loader.yaml_implicit_resolvers = {
+        first: [(tag, rx) for tag, rx in rules if tag != "tag:yaml.org,2002:float"]
+        for first, rules in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+    Loader.add_implicit_resolver("tag:yaml.org,2002:float", _YAML12_FLOAT,
+                                 list("-+0123456789."))
+    return Loader
+
+
 def read_yaml_file(path: str | Path, what: str) -> Any:
     """The YAML document in `path`; ConfigError in one line naming `what` ("params file")
-    and the file when it is missing, unreadable or bad YAML (then with where and why)."""
+    and the file when it is missing, unreadable or bad YAML (then with where and why).
+    Floats are read as YAML 1.2 and the nodes read them (`1e-6` is a number)."""
     import yaml
 
     path = Path(path)
     try:
-        return yaml.safe_load(path.read_text())
+        return yaml.load(path.read_text(), Loader=_yaml_loader())  # (a safe loader)
     except FileNotFoundError:
         raise ConfigError(f"{what} not found: {path}") from None
     except yaml.MarkedYAMLError as exc:
@@ -789,7 +818,11 @@ def _yaml_scalar(value: Any) -> str:
     if isinstance(value, str):
         return '""' if value == "" else f'"{value}"'
     if isinstance(value, float):
+        if not math.isfinite(value):
+            return ".nan" if math.isnan(value) else ".inf" if value > 0 else "-.inf"
         text = repr(value)
+        if "e" in text and "." not in text:  # 1e-05 -> 1.0e-05: a float to YAML 1.1 too
+            text = text.replace("e", ".0e")
         return text if ("." in text or "e" in text) else text + ".0"
     return str(value)
 

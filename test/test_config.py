@@ -196,3 +196,21 @@ def test_a_clearance_grid_too_many_cells_a_side_is_refused():
     assert replace(ObstacleDetectorConfig(), {"clearance.size": 2000.0}).clearance.size == 2000
     assert replace(ObstacleDetectorConfig(), {"clearance.size": 200.0,
                                               "clearance.resolution": 0.1}).clearance.size == 200
+
+
+@pytest.mark.parametrize("text, value", [("1e-6", 1e-6), ("1E-6", 1e-6), ("1.0e-06", 1e-6),
+                                         (".00001", 1e-5), ("2e-3", 2e-3)])
+def test_floats_are_read_as_the_nodes_read_them(tmp_path, text, value):
+    """`kmeans.tol: 1e-6` is a number to rcl (YAML 1.2); PyYAML (YAML 1.1) read a string
+    and `replay` refused the file the nodes load: "expected a number, got '1e-6'"."""
+    params = tmp_path / "p.yaml"
+    params.write_text(f"/**:\n  ros__parameters:\n    kmeans:\n      tol: {text}\n")
+    assert load_params_file(params, DemBuilderConfig, "dem_builder").kmeans.tol == value
+
+
+def test_a_dumped_config_loads_back_whatever_its_floats(tmp_path):
+    """Our own dump of 1e-05 (written `1e-05`) was refused by our own loader."""
+    cfg = replace(DemBuilderConfig(), {"kmeans.tol": 1e-5, "rbfnn.goal": 2.5e-7})
+    path = tmp_path / "dump.yaml"
+    path.write_text(dump_ros_yaml(cfg, "/**"))
+    assert load_params_file(path, DemBuilderConfig, "dem_builder") == cfg
