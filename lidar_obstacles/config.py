@@ -59,19 +59,51 @@ def param(default: Any, description: str, unit: str = "", *, min: float | None =
     return field(default=default, metadata={"spec": spec})
 
 
+# GeoTIFF's CRS keys are 16-bit, and codes 1024-32766 are EPSG's (GeoTIFF 1.1, 2.3).
+EPSG_KEY_RANGE = (1024, 32766)
+# The CRS keywords a WKT starts with (WKT 1, OGC 01-009, and WKT 2, ISO 19162).
+WKT_KEYWORDS = {"PROJCS", "GEOGCS", "GEOCCS", "COMPD_CS", "VERT_CS", "LOCAL_CS", "PROJCRS",
+                "PROJECTEDCRS", "GEOGCRS", "GEOGRAPHICCRS", "GEODCRS", "GEODETICCRS",
+                "COMPOUNDCRS", "VERTCRS", "VERTICALCRS", "ENGCRS", "ENGINEERINGCRS",
+                "BOUNDCRS"}
+
+
+def _balanced(wkt: str) -> bool:
+    """Whether the brackets of a WKT pair up outside its quoted strings."""
+    depth, quoted = 0, False
+    for ch in wkt:  # (a CRS text: a few hundred characters, once)
+        if ch == '"':
+            quoted = not quoted
+        elif not quoted and ch in "[(":
+            depth += 1
+        elif not quoted and ch in "])":
+            depth -= 1
+            if depth < 0:
+                return False
+    return depth == 0 and not quoted
+
+
 def parse_crs(text: str) -> tuple[int | None, str]:
     """`EPSG:32632` / `32632` -> (32632, ""); WKT -> (None, wkt); "" -> (None, "").
 
-    Raises ConfigError for anything else."""
+    Raises ConfigError for anything else: an EPSG code GeoTIFF cannot hold as a key
+    (EPSG_KEY_RANGE; give such a CRS as WKT), or a text that is no CRS WKT (a known
+    keyword, then brackets that pair up)."""
     text = text.strip()
     if not text:
         return None, ""
-    match = re.fullmatch(r"(?:EPSG:)?(\d{4,6})", text, flags=re.IGNORECASE)
+    match = re.fullmatch(r"(?:EPSG:)?(\d+)", text, flags=re.IGNORECASE)
     if match:
-        return int(match.group(1)), ""
-    if "[" in text:
+        code = int(match.group(1))
+        lo, hi = EPSG_KEY_RANGE
+        if not lo <= code <= hi:
+            raise ConfigError(f"parameter 'export.crs': EPSG code {code} does not fit a "
+                              f"GeoTIFF key ({lo}-{hi}): give the CRS as WKT")
+        return code, ""
+    keyword = re.match(r"([A-Za-z_]+)\s*[\[(]", text)
+    if keyword and keyword.group(1).upper() in WKT_KEYWORDS and _balanced(text):
         return None, text
-    raise ConfigError(f"parameter 'export.crs': {text!r} is neither EPSG:<code> nor WKT")
+    raise ConfigError(f"parameter 'export.crs': {text!r} is neither EPSG:<code> nor a CRS WKT")
 
 
 # --------------------------------------------------------------------------- sections

@@ -248,8 +248,8 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
         "inputs": [i.name for i in inputs],
     }
     if held_out:
-        before, after = _scored(held_out, start, objective), _scored(held_out, best_cfg,
-                                                                       objective)
+        before = _scored(held_out, start, objective)
+        after = _scored(held_out, best_cfg, objective)
         check = {"inputs": [i.name for i in held_out],
                  "start_score": before["score"], "best_score": after["score"],
                  "start_objective": before["objective"], "best_objective": after["objective"],

@@ -246,4 +246,4 @@ def test_a_bad_crs_is_refused_before_the_work_naming_the_option(tmp_path, capsys
                  "--crs", "foo"])
     assert code == 2
     assert capsys.readouterr().err == (
-        "lidar-obstacles export-dem: error: --crs: 'foo' is neither EPSG:<code> nor WKT\n")
+        "lidar-obstacles export-dem: error: --crs: 'foo' is neither EPSG:<code> nor a CRS WKT\n")

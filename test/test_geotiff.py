@@ -107,6 +107,28 @@ def test_parse_crs():
         replace(DemBuilderConfig(), {"export.crs": "foo"})
 
 
+@pytest.mark.parametrize("text, message", [
+    # a GeoTIFF key is 16 bits: 65536 crashed the writer (struct.error, exit 1)
+    ("EPSG:65536", "EPSG code 65536 does not fit a GeoTIFF key"),
+    ("EPSG:123456", "EPSG code 123456 does not fit"),
+    ("EPSG:0000", "EPSG code 0 does not fit"),
+    # a '[' was enough to be written as the CRS's WKT
+    ("PROJCS[garbage", "is neither EPSG:<code> nor a CRS WKT"),
+    ("hello [world]", "is neither EPSG:<code> nor a CRS WKT"),
+    ('GEOGCS["WGS 84"]]', "is neither EPSG:<code> nor a CRS WKT"),
+])
+def test_a_crs_geotiff_cannot_hold_is_refused_when_set(text, message):
+    with pytest.raises(ConfigError, match=message):
+        replace(DemBuilderConfig(), {"export.crs": text})
+
+
+def test_wkt_forms_are_accepted():
+    wkt2 = ('PROJCRS["WGS 84 / UTM zone 32N",BASEGEOGCRS["WGS 84",DATUM["World Geodetic '
+            'System 1984 [sic]",ELLIPSOID["WGS 84",6378137,298.257223563]]],ID["EPSG",32632]]')
+    assert parse_crs(wkt2) == (None, wkt2)
+    assert parse_crs('  COMPD_CS["x", PROJCS["y"], VERT_CS["z"]] ')[1].startswith("COMPD_CS")
+
+
 def test_hillshade_png(tmp_path):
     from PIL import Image
 
