@@ -111,3 +111,30 @@ def test_coordinates_are_metres_by_the_files_scales_and_offsets(tmp_path):
     assert cloud.points["classification"].tolist() == [2, 6]
     assert cloud.points["intensity"].tolist() == [7, 65535]
     assert cloud.has_gps_time and cloud.points["gps_time"].tolist() == [1.5, 2.25]
+
+
+@pytest.mark.parametrize("scale, offset, message", [
+    (float("nan"), 0.0, r"scales \[nan, nan, nan\] / offsets .* the header is corrupt"),
+    (0.0, 0.0, r"cannot give coordinates \(not finite, or a zero scale\)"),
+    (0.01, float("inf"), r"the header is corrupt"),
+    # finite, but no survey lies there: overflowed into inf downstream, or a crash in
+    # `simplify` (cKDTree: "data must be finite")
+    (1e300, 0.0, r"its coordinates reach 1\.2e\+303 m, beyond 1e\+09 m of any survey"),
+])
+def test_a_header_whose_scales_or_offsets_give_no_survey_is_refused(tmp_path, scale, offset,
+                                                                    message):
+    """Scales and offsets are written into the header's bytes (laspy will not write
+    them): LAS 1.2 keeps them as six float64 from byte 131."""
+    import struct
+
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.scales, header.offsets = [1.0] * 3, [0.0] * 3
+    las = laspy.LasData(header)
+    las.X, las.Y, las.Z = [1200, 5], [0, 7], [3, 0]
+    path = tmp_path / "bad.las"
+    las.write(str(path))
+    data = bytearray(path.read_bytes())
+    data[131:179] = struct.pack("<6d", *([scale] * 3 + [offset] * 3))
+    path.write_bytes(bytes(data))
+    with pytest.raises(LasError, match=message):
+        read_las(path)

@@ -115,11 +115,17 @@ def _read_laspy(path: Path) -> LasData:
         raise LasError(f"{what}: {exc}".splitlines()[0]) from None
 
 
+# No survey's coordinates are larger (m): a UTM northing is ~1e7, ECEF ~6.4e6. Beyond it the
+# header's scale or offset is wrong, and the points would overflow whatever grids them.
+MAX_COORDINATE = 1e9
+
+
 def read_las(path: str | Path, *, allow_empty: bool = False) -> LasCloud:
     """Read a LAS or LAZ file into a :class:`LasCloud`.
 
     Raises LasError (one line naming the file and the problem) for a missing or unreadable
-    file, and for one without points unless `allow_empty`. A LAS file of 0 points is valid
+    file, a header whose scales and offsets give no coordinates (not finite, beyond
+    MAX_COORDINATE), and a file without points unless `allow_empty`. A LAS file of 0 points is valid
     (`features` writes one when no point is a feature), but most callers can do nothing
     with it and say so in that line; those that can (a filter of the points: 0 in, 0 out)
     ask for it.
@@ -132,13 +138,24 @@ def read_las(path: str | Path, *, allow_empty: bool = False) -> LasCloud:
     n = len(las.points)
     if n == 0 and not allow_empty:
         raise LasError(f"LAS file has no points: {path}")
+    scales, offsets = np.asarray(las.header.scales), np.asarray(las.header.offsets)
+    if not (np.isfinite(scales).all() and np.isfinite(offsets).all() and scales.all()):
+        raise LasError(f"{path}: its header's scales {scales.tolist()} / offsets "
+                       f"{offsets.tolist()} cannot give coordinates (not finite, or a zero "
+                       "scale): the header is corrupt")
     names = set(las.point_format.dimension_names)
     dtype = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
     dtype += [(name, dt) for name, dt in LAS_FIELDS if name in names]
     points = np.empty(n, dtype=dtype)
-    points["x"] = np.asarray(las.x, dtype=np.float64)
-    points["y"] = np.asarray(las.y, dtype=np.float64)
-    points["z"] = np.asarray(las.z, dtype=np.float64)
+    with np.errstate(over="ignore", invalid="ignore"):  # (said below, in one line)
+        points["x"] = np.asarray(las.x, dtype=np.float64)
+        points["y"] = np.asarray(las.y, dtype=np.float64)
+        points["z"] = np.asarray(las.z, dtype=np.float64)
+    reach = max((float(np.abs(points[a]).max()) for a in "xyz"), default=0.0) if n else 0.0
+    if not reach <= MAX_COORDINATE:  # (NaN fails too)
+        raise LasError(f"{path}: its coordinates reach {reach:.3g} m, beyond "
+                       f"{MAX_COORDINATE:.0e} m of any survey: its header's scales "
+                       f"{scales.tolist()} or offsets {offsets.tolist()} are wrong")
     for name, _ in dtype[3:]:
         points[name] = np.asarray(las[name])
     wkt, epsg = _crs_from_vlrs(las.header)
