@@ -1652,8 +1652,10 @@ def check_extent(xyz: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
     int64, which a span of 1e19 cells overflows. Returns the cloud's box: (3,) lowest and
     (3,) highest coordinates, m."""
     lo, hi = column_min(xyz), column_max(xyz)
-    cols, rows = np.floor((hi[:2] - lo[:2]) / cell) + 1
-    if rows * cols > MAX_RASTER_CELLS:
+    with np.errstate(over="ignore"):  # (1e300 m clouds: inf cells, refused just the same)
+        cols, rows = np.floor((hi[:2] - lo[:2]) / cell) + 1
+        cells = rows * cols
+    if cells > MAX_RASTER_CELLS:
         raise CloudFormatError(
             f"the cloud spans {cols * cell:.6g} x {rows * cell:.6g} m, more than "
             f"{MAX_RASTER_CELLS:,} cells of ground.cell = {cell} m: cut it into tiles "
