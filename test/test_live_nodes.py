@@ -451,6 +451,28 @@ def test_bad_parameter_at_start_exits_2_with_one_line(args, expected):
     assert log == f"obstacle_detector: error: {expected}\n"
 
 
+@pytest.mark.parametrize("text, expected", [
+    # a misspelled section: the node ran on its defaults without a word
+    ("obstacle_detektor:\n  ros__parameters:\n    tiling:\n      size: 30.0\n",
+     "no section for obstacle_detector, dem_builder, cloud_simplifier or /** (found "
+     "'obstacle_detektor')"),
+    # another node's parameter out of its range: refused by `replay`, taken by the node
+    ("/**:\n  ros__parameters:\n    dem:\n      resolution: -5.0\n",
+     "parameter 'dem.resolution': -5.0 is outside its range [0.05, 100]"),
+    # bad YAML: rcl's "[ERROR] [rcl]: Failed to parse global arguments" came first
+    ("not: [valid\n", "line 2, column 1: expected ',' or ']', but got '<stream end>'"),
+])
+def test_a_params_file_is_read_as_replay_reads_it(tmp_path, text, expected):
+    """The nodes take a params file on the terms `replay` and `evaluate` take it, in one
+    line with exit status 2."""
+    params = tmp_path / "p.yaml"
+    params.write_text(text)
+    proc = _start("lidar_obstacles.scripts.obstacle_detector", "--params-file", str(params))
+    rc, log = (_stop(proc) if proc.wait(timeout=60) is None
+               else (proc.returncode, proc.stdout.read()))
+    assert (rc, log) == (2, f"obstacle_detector: error: params file {params}: {expected}\n")
+
+
 def test_a_shared_params_file_with_the_other_nodes_parameters_is_fine(tmp_path):
     # one file for both nodes (what `tune` writes is loaded by both): no typo, no error
     params = tmp_path / "both.yaml"

@@ -436,18 +436,43 @@ class StopSignals:
             signal.signal(sig, handler)
 
 
-def _missing_params_file(argv: list[str]) -> str | None:
-    """The first `--params-file PATH` of the --ros-args in `argv` that is not a file."""
-    inside = False
+def _ros_options(argv: list[str], option: str) -> list[str]:
+    """The values of `option` (e.g. --params-file) among the --ros-args of `argv`, in
+    order; for -r / --remap, the rules."""
+    names = ("-r", "--remap") if option in ("-r", "--remap") else (option,)
+    inside, values = False, []
     for arg, nxt in zip(argv, [*argv[1:], None]):
         if arg == "--ros-args":
             inside = True
         elif arg == "--":
             inside = False
-        elif inside and arg == "--params-file" and nxt is not None \
-                and not Path(nxt).is_file():
-            return nxt
-    return None
+        elif inside and arg in names and nxt is not None:
+            values.append(nxt)
+    return values
+
+
+def _missing_params_file(argv: list[str]) -> str | None:
+    """The first `--params-file PATH` of the --ros-args in `argv` that is not a file."""
+    return next((p for p in _ros_options(argv, "--params-file") if not Path(p).is_file()),
+                None)
+
+
+def _check_params_files(argv: list[str], cls: type | None) -> None:
+    """Read each --params-file of `argv` as `replay` and `evaluate` read it, for node
+    config `cls`: ConfigError for what rcl takes silently or says in lines of its own (a
+    section none of our nodes has, `obstacle_detektor:`; another node's parameter out of
+    its range; bad YAML). Under a remapped node name (-r __node:=NAME) the file's
+    sections are that name's."""
+    from lidar_obstacles.config import NODE_CONFIGS, load_params_file
+
+    name = next((k for k, c in NODE_CONFIGS.items() if c is cls), None)
+    if name is None:
+        return
+    for rule in _ros_options(argv, "-r"):
+        if rule.startswith(("__node:=", "__name:=")):
+            return  # (its sections are named otherwise: rcl's word stands)
+    for path in _ros_options(argv, "--params-file"):
+        load_params_file(path, cls, name)
 
 
 def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
@@ -473,6 +498,11 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
     missing = _missing_params_file(argv)
     if missing is not None:  # said here: rcl would add a line of its own ("[ERROR] [rcl]")
         print(f"{program}: error: params file {missing} not found", file=sys.stderr)
+        return 2
+    try:  # (the same reasons: one line, before rcl's)
+        _check_params_files(argv, getattr(factory, "config_cls", None))
+    except ConfigError as exc:
+        print(f"{program}: error: {exc}", file=sys.stderr)
         return 2
     try:
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
