@@ -263,7 +263,10 @@ def bench_memory(minutes: float, every: int) -> dict:
             "rss_end_mb": round(samples[-1][1], 1),
             "growth": round(samples[-1][1] / ref[1] - 1.0, 4),
             "peak_after_10pct_mb": round(ref[2], 1), "peak_end_mb": round(samples[-1][2], 1),
-            "peak_growth": round(samples[-1][2] / ref[2] - 1.0, 4)}
+            "peak_growth": round(samples[-1][2] / ref[2] - 1.0, 4),
+            # the trend: a leak climbs steadily, one heavy message steps the peak once
+            "samples": [{"message": i, "rss_mb": round(r, 1), "peak_mb": round(pk, 1)}
+                        for i, r, pk in samples]}
 
 
 def main() -> None:
