@@ -80,7 +80,7 @@ def simplify(src: Path, out: Path, *, params_file: Path | None = None,
         return {"output": str(out), "points_in": n, "points_out": kept,
                 "reduction": 1.0 - kept / n if n else 0.0, "method": cfg.simplify.method,
                 "k": result.k, "r": result.r if np.isfinite(result.r) else None,
-                "reason": result.reason,
+                "note": result.reason or None,  # why nothing was simplified, if so
                 "seconds": time.perf_counter() - t0}
     stage = SimplifierStage(cfg)
 
@@ -112,7 +112,7 @@ def features(src: Path, out: Path, *, params_file: Path | None = None,
         n = len(las.points)
         feature = tiled_features(las.xyz, cfg=cfg, rng=rng)
         kept = write_las_subset(src, feature, out)
-        return {"output": str(out), "points_in": n, "feature_points": kept,
+        return {"output": str(out), "points_in": n, "points_out": kept,
                 "share": kept / n if n else 0.0, "seconds": time.perf_counter() - t0}
 
     def keep_of(msg) -> tuple[object, int, int]:
