@@ -35,7 +35,7 @@ class OutputError(LidarObstaclesError):
 
 # A number in an error message: 8, -5, 25,000,000, 1.5, 1e+15 (not the 32 of FLOAT32).
 _NUMBER = re.compile(r"(?<!\w)\d+(?:[.,]\d+)*(?:[eE][-+]?\d+)?")
-_DETAIL = re.compile(r" ?\([^()]+\)")  # an innermost parenthesis and the space before it
+_DETAIL = re.compile(r" ?\([^()]*\)")  # an innermost (perhaps empty) parenthesis, its space
 
 
 # Reasons counted apart, at most; the rest count together (a flood of clouds whose

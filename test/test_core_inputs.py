@@ -203,6 +203,8 @@ def test_rejected_clouds_are_counted_by_the_kind_of_their_error():
     from lidar_obstacles.errors import reason_key
 
     assert reason_key("cloud has no 'z' field (fields: ('x', 'y'))") == "cloud has no 'z' field"
+    # a cloud with no field at all: one key with the others (its "()" was left in it)
+    assert reason_key("cloud has no 'x' field (fields: ())") == "cloud has no 'x' field"
     assert reason_key("cloud has 3000000 points, more than input.max_points=2000000") == \
         reason_key("cloud has 4407 points, more than input.max_points=100") == \
         "cloud has N points, more than input.max_points=N"

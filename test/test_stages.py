@@ -114,3 +114,14 @@ def test_markers_vanish_after_their_lifetime_stretched_for_slow_clouds(base, sta
                                   {"obstacles.marker_lifetime": base}))
     got = [_lifetime(stage.process(_box_scene(round(s * 1e9)))[0]) for s in stamps_s]
     assert got == pytest.approx(expected, abs=1e-6)
+
+
+def test_a_stamp_with_a_second_or_more_of_nanoseconds_is_malformed():
+    """builtin_interfaces/Time keeps nanosec below 1e9; one at 2^31 - 1 s plus 1.5e9 ns
+    gave outputs stamped -2 147 483 645 s."""
+    from lidar_obstacles.errors import CloudFormatError
+
+    msg = _box_scene(0)
+    msg.header.stamp.sec, msg.header.stamp.nanosec = 2**31 - 1, 1_500_000_000
+    with pytest.raises(CloudFormatError, match="nanosec 1500000000, not below 1e9"):
+        DetectorStage(ObstacleDetectorConfig()).process(msg)

@@ -138,6 +138,9 @@ def prepare(msg, *, keep_non_finite: bool, max_points: int, pose: Pose | None,
     cloud's points keep the types of their fields, or carry x, y, z as FLOAT64 with
     `widen_xyz` (`with_xyz`); `xyz` is float64 either way, and is what is classified.
     """
+    nanosec = int(msg.header.stamp.nanosec)
+    if nanosec >= 1_000_000_000:  # (uint32: never negative) outputs were stamped -2^31 s
+        raise CloudFormatError(f"header stamp has nanosec {nanosec}, not below 1e9")
     n_in = int(msg.width) * int(msg.height)
     if n_in > max_points:
         raise CloudFormatError(f"cloud has {n_in} points, more than input.max_points="
