@@ -138,3 +138,17 @@ def test_a_header_whose_scales_or_offsets_give_no_survey_is_refused(tmp_path, sc
     path.write_bytes(bytes(data))
     with pytest.raises(LasError, match=message):
         read_las(path)
+
+
+def test_an_unknown_point_format_is_named(tmp_path):
+    # laspy's error is the number alone: "cannot read LAS file bad.las: 42"
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    las = laspy.LasData(header)
+    las.X, las.Y, las.Z = [1, 2], [3, 4], [5, 6]
+    path = tmp_path / "bad.las"
+    las.write(str(path))
+    data = bytearray(path.read_bytes())
+    data[104] = 42  # LAS 1.2: the point data format id
+    path.write_bytes(bytes(data))
+    with pytest.raises(LasError, match=r"point format 42 is not one of LAS 1\.0-1\.4's"):
+        read_las(path)

@@ -112,6 +112,9 @@ def _read_laspy(path: Path) -> LasData:
     except LasError:
         raise
     except Exception as exc:  # laspy raises many types for corrupt files
+        if type(exc).__name__ == "PointFormatNotSupported":  # (its text is the number alone)
+            raise LasError(f"{what}: point format {exc} is not one of LAS 1.0-1.4's (0-10): "
+                           "the header is corrupt") from None
         raise LasError(f"{what}: {exc}".splitlines()[0]) from None
 
 
