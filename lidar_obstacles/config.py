@@ -512,9 +512,18 @@ class RbfnnConfig:
                            "points", min=10, max=10_000_000)
 
 
+def check_file_path(text: str) -> str:
+    """A path that can name a file: not empty, not ending in a folder separator. Raises
+    ConfigError (`save_dem` answered "<cwd> exists and is not a TIFF" for "")."""
+    if not text.strip() or text.endswith(("/", "\\")) or Path(text).name in ("", ".", ".."):
+        raise ConfigError(f"parameter 'export.path': {text!r} names no file")
+    return text
+
+
 @dataclass(frozen=True)
 class ExportConfig:
-    path: str = param("dem.tif", "where `save_dem` writes the GeoTIFF")
+    path: str = param("dem.tif", "where `save_dem` writes the GeoTIFF (relative: to the "
+                      "node's working folder)", check=check_file_path)
     crs: str = param("", "CRS written into the GeoTIFF, e.g. `EPSG:32632` or WKT (empty: "
                      "none)", check=parse_crs)
 

@@ -175,3 +175,12 @@ def test_file_mode_follows_umask_without_changing_it(tmp_path, monkeypatch):
         assert os.umask(0o027) == 0o027  # unchanged afterwards
     finally:
         os.umask(old)
+
+
+@pytest.mark.parametrize("path", ["", "  ", "out/", ".", "x/.."])
+def test_an_export_path_that_names_no_file_is_refused_when_set(path):
+    # "" was taken, and `save_dem` then answered "<cwd> exists and is not a TIFF"
+    with pytest.raises(ConfigError, match="export.path.*names no file"):
+        replace(DemBuilderConfig(), {"export.path": path})
+    assert replace(DemBuilderConfig(), {"export.path": "out/dem.tif"}).export.path == \
+        "out/dem.tif"

@@ -497,7 +497,8 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
     program = Path(sys.argv[0]).stem or "node"
     missing = _missing_params_file(argv)
     if missing is not None:  # said here: rcl would add a line of its own ("[ERROR] [rcl]")
-        print(f"{program}: error: params file {missing} not found", file=sys.stderr)
+        print(f"{program}: error: params file {missing} "
+              f"{'is a folder' if Path(missing).is_dir() else 'not found'}", file=sys.stderr)
         return 2
     try:  # (the same reasons: one line, before rcl's)
         _check_params_files(argv, getattr(factory, "config_cls", None))
