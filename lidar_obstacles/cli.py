@@ -383,6 +383,10 @@ def _main(argv: list[str] | None) -> int:
         print(f"lidar-obstacles {args.command}: "
               f"{'terminated' if terminated else 'interrupted'}{detail}", file=sys.stderr)
         return 143 if terminated else 130
+    # The work is done and its outputs are in place: a stop from here on changes nothing,
+    # and must not turn the run into a failure (status 130 after the summary).
+    for stop in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(stop, signal.SIG_IGN)
     from lidar_obstacles.ros.offline import write_json
 
     write_json(summary)

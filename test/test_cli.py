@@ -6,6 +6,7 @@ import argparse
 import os
 import re
 import signal
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -247,3 +248,23 @@ def test_a_bad_crs_is_refused_before_the_work_naming_the_option(tmp_path, capsys
     assert code == 2
     assert capsys.readouterr().err == (
         "lidar-obstacles export-dem: error: --crs: 'foo' is neither EPSG:<code> nor a CRS WKT\n")
+
+
+def test_a_stop_after_the_work_is_done_does_not_fail_the_run(tmp_path):
+    """SIGINT once the outputs are in place (here: as the summary is printed) left a
+    complete output and its summary, but exit status 130: a caller took the run for
+    failed. It now ends with 0."""
+    code = ("import os, signal, sys\n"
+            "from lidar_obstacles import cli\n"
+            "from lidar_obstacles.ros import offline\n"
+            "write = offline.write_json\n"
+            "def late(summary):\n"
+            "    os.kill(os.getpid(), signal.SIGINT)\n"
+            "    write(summary)\n"
+            "offline.write_json = late\n"
+            f"sys.exit(cli.main(['simulate', {str(tmp_path / 'f')!r}, '--duration', '0.1',"
+            " '--points', '300']))\n")
+    res = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
+                         text=True, timeout=120)
+    assert (res.returncode, res.stderr) == (0, ""), res.stderr
+    assert json.loads(res.stdout)["messages"] >= 1
