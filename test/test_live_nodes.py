@@ -272,7 +272,8 @@ def test_play_answers_ctrl_c_while_a_subscriber_does_not_acknowledge(tmp_path):
     try:
         assert proc.stdout.readline() == "waiting\n"
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=5)  # (the wait alone was 15 s)
+        out, err = proc.communicate(timeout=10)  # (the wait alone was 15 s; 5 s was once
+        # too short with the other core busy)
     finally:
         if proc.poll() is None:
             proc.kill()
