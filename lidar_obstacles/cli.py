@@ -305,6 +305,7 @@ class _Terminated(KeyboardInterrupt):
 
 
 _RECEIVED: list[int] = []  # the stop signals received, the latest last
+STOPS = (signal.SIGINT, signal.SIGTERM)
 
 
 def _on_signal(signum: int, frame: object) -> None:
@@ -352,6 +353,18 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None) -> int:
+    """`_command`, the caller's signal handlers restored after it (for a caller in the same
+    process: tests, scripts; an ignored SIGINT would be ignored by the processes they
+    start afterwards too)."""
+    before = {stop: signal.getsignal(stop) for stop in STOPS}
+    try:
+        return _command(argv)
+    finally:
+        for stop, handler in before.items():
+            signal.signal(stop, handler)
+
+
+def _command(argv: list[str] | None) -> int:
     _RECEIVED.clear()  # (of an earlier call in this process)
     # Ctrl-C as Python has it, also where the shell started the command in the background
     # with SIGINT ignored: `kill -INT` stops it as Ctrl-C does. First, so that the imports
@@ -384,8 +397,10 @@ def _main(argv: list[str] | None) -> int:
               f"{'terminated' if terminated else 'interrupted'}{detail}", file=sys.stderr)
         return 143 if terminated else 130
     # The work is done and its outputs are in place: a stop from here on changes nothing,
-    # and must not turn the run into a failure (status 130 after the summary).
-    for stop in (signal.SIGINT, signal.SIGTERM):
+    # and must not turn the run into a failure (status 130 after the summary). Ignored
+    # while the summary is written (`_main` then restores the caller's handlers; `console`
+    # ignores it again up to the exit).
+    for stop in STOPS:
         signal.signal(stop, signal.SIG_IGN)
     from lidar_obstacles.ros.offline import write_json
 
@@ -402,7 +417,11 @@ def console() -> NoReturn:
     in `main`'s own `finally` blocks."""
     from lidar_obstacles.scripts import exit_process
 
-    exit_process(main(), stopped=bool(_RECEIVED))
+    status = main()
+    stopped = bool(_RECEIVED)
+    for stop in STOPS:  # done: a stop now changes nothing (see _main)
+        signal.signal(stop, signal.SIG_IGN)
+    exit_process(status, stopped=stopped)
 
 
 if __name__ == "__main__":  # `python -m lidar_obstacles.cli`

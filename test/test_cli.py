@@ -268,3 +268,13 @@ def test_a_stop_after_the_work_is_done_does_not_fail_the_run(tmp_path):
                          text=True, timeout=120)
     assert (res.returncode, res.stderr) == (0, ""), res.stderr
     assert json.loads(res.stdout)["messages"] >= 1
+
+
+def test_main_leaves_the_callers_signal_handlers_as_they_were(tmp_path):
+    """In-process callers (tests, scripts) keep their own handlers: an ignored SIGINT
+    would also be ignored by every process they start afterwards."""
+    import signal
+
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    assert main(["simulate", str(tmp_path / "f"), "--duration", "0.1", "--points", "300"]) == 0
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
