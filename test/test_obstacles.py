@@ -315,6 +315,31 @@ def test_a_wire_known_from_earlier_strips_is_followed_into_a_crown():
     assert np.count_nonzero(c[np.abs(crown[:, 1]) < 2.0] == 14) == 0
 
 
+def test_only_a_wire_seen_as_a_wire_leads_into_crowns():
+    """A known wire leads on only with SEED_VOXELS voxels that passed the wire test
+    themselves within KNOWN_WIRE_SUPPORT: the same known span, flagged as only followed
+    (through crowns) but for 3 voxels, leads nowhere. Else a few crown points once taken
+    for a wire were followed, remembered and followed again, message after message (a
+    simulated forest: 2 points -> 1 537 a message)."""
+    xyz, truth = _span_through_crown(np.random.default_rng(4))
+    strip = np.abs(xyz[:, 0]) < 5.0
+    known = xyz[(truth == 14) & (xyz[:, 0] < -5.0) & (xyz[:, 0] > -30.0)][::5]
+    msg, t = xyz[strip], truth[strip]
+    hag = msg[:, 2].astype(np.float32)
+
+    def wire_recall(tested: np.ndarray) -> float:
+        rows = np.column_stack([known, tested])
+        c = classify_obstacles(msg, np.zeros(len(msg), bool), hag, cfg=CFG.obstacles,
+                               known_wires=rows)
+        assert c.wires.shape[1] == 4  # what it passes on carries the flag too
+        return float((c.classes[t == 14] == 14).mean())
+
+    assert wire_recall(np.ones(len(known))) > 0.9
+    followed_only = np.zeros(len(known))
+    followed_only[:3] = 1.0
+    assert wire_recall(followed_only) < 0.5
+
+
 def test_wall_and_roof_are_building_by_their_own_area():
     rng = np.random.default_rng(3)
     wall = np.column_stack([rng.uniform(0, 12, 3000), np.zeros(3000), rng.uniform(0.5, 8, 3000)])

@@ -75,6 +75,14 @@ WIRE_MIN_RUN = 10.0  # m: wire candidates joined into shorter runs are not wires
 # resultant of their doubled angles, 1 for parallel lines, ~0 for random ones) to at least
 # SEED_AGREEMENT (see _wires).
 SEED_VOXELS = 20
+# A known wire leads on (is followed, and continues this message's runs) only where the
+# memory holds SEED_VOXELS voxels of wire that passed the wire test itself (not followed
+# through a crown) within this reach (m): otherwise a few crown points taken for a wire
+# once were followed through the crowns message after message, and what was followed was
+# remembered and followed in turn (simulated `mixed` flight, seed 4, a forest 12 min in:
+# 2 crown points -> 1 537 "wire" points a message, 9 456 remembered, 85 MB of neighbour
+# pairs a message).
+KNOWN_WIRE_SUPPORT = 40.0
 SEED_AGREEMENT = 0.95
 WIRE_MEMORY_VOXEL = 0.5  # m: the wires a message passes on are thinned to one point per voxel
 BUILDING_MEMORY_VOXEL = 1.0  # m: ... and its roofs and walls (the patches' own voxel)
@@ -155,8 +163,9 @@ class ObstacleClasses:
     """classes: (N,) uint8 ASPRS; object_id: (N,) int32 (-1 outside objects); towers:
     (T, 4) x, y, radius and height above ground (m) of the towers recognised, for the next
     message's known_towers;
-    wires: (W, 3) m, the wire points thinned to one per WIRE_MEMORY_VOXEL, for its
-    known_wires; buildings: (B, 4) x, y, z (m) and 1 for a roof or wall, 0 for what only
+    wires: (W, 4) x, y, z (m) and 1 where the wire passed the wire test itself, 0 where it
+    was only followed (through a crown), the wire points thinned to one per
+    WIRE_MEMORY_VOXEL, for its known_wires; buildings: (B, 4) x, y, z (m) and 1 for a roof or wall, 0 for what only
     clings to one (edges, chimneys), the building points thinned to one per
     BUILDING_MEMORY_VOXEL, for its known_buildings; candidates: (C, 3) m, the points whose
     shape was sought, for a later thin strip's shape_context."""
@@ -631,6 +640,23 @@ def _off_line(p: np.ndarray, origin: np.ndarray, axis: np.ndarray) -> np.ndarray
     d = p - origin
     along = d[:, 0] * axis[:, 0] + d[:, 1] * axis[:, 1] + d[:, 2] * axis[:, 2]
     return row_norm(d - along[:, None] * axis)
+
+
+def _supported_wires(known: np.ndarray | None) -> np.ndarray:
+    """(S, 3) m: the rows of known wire (W, 4) (x, y, z, 1 if it passed the wire test
+    itself; (W, 3): all did) that have SEED_VOXELS tested rows within KNOWN_WIRE_SUPPORT
+    m, themselves included."""
+    if known is None or len(known) == 0:
+        return np.zeros((0, 3))
+    known = np.asarray(known, float)
+    if known.shape[1] == 3:
+        return known
+    tested = known[known[:, 3] > 0, :3]
+    if len(tested) < SEED_VOXELS:
+        return np.zeros((0, 3))
+    near = search_tree(tested).query_ball_point(known[:, :3], KNOWN_WIRE_SUPPORT,
+                                                return_length=True)
+    return known[near >= SEED_VOXELS, :3]
 
 
 def _known_wire_seeds(known: np.ndarray, pts: np.ndarray, found: np.ndarray,
@@ -1383,7 +1409,8 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
     the height above ground (N,) float32 m (NaN: unknown, taken as 0). known_towers: (K, 4)
     x, y, radius, height (m) of towers recognised in earlier messages
     (ObstacleClasses.towers);
-    known_wires: (W, 3) m, wire points of earlier messages (ObstacleClasses.wires);
+    known_wires: (W, 4) wire points of earlier messages (ObstacleClasses.wires; (W, 3): all
+    taken as tested), of which only those supported (`_supported_wires`) lead on;
     known_buildings: (B, 4) their building points (ObstacleClasses.buildings);
     context: (C, 3) m, points of earlier messages beyond a thin strip's edge, neighbours in
     the shape features only (`shape_context`)."""
@@ -1406,14 +1433,15 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
     cand = nong[hag[nong] >= cfg.min_height]
     t1 = time.perf_counter()
     objects: list[ObstacleObject] = []
-    towers, wires, buildings = np.zeros((0, 4)), np.zeros((0, 3)), np.zeros((0, 4))
-    known_wires = np.zeros((0, 3)) if known_wires is None else np.asarray(known_wires, float)
+    towers, wires, buildings = np.zeros((0, 4)), np.zeros((0, 4)), np.zeros((0, 4))
+    known_wires = _supported_wires(known_wires)
     known_buildings = (np.zeros((0, 4)) if known_buildings is None
                        else np.asarray(known_buildings, float).reshape(-1, 4))
     if len(cand) >= 3:
         shape = local_shape(xyz[cand], cfg.feature_radius, context=context)
         # 2. wires
         is_wire = _wires(xyz, cand, hag, shape, cfg, known_wires)
+        tested = is_wire.copy()  # (before the following through crowns)
         classes[cand[is_wire]] = WIRE
         t2 = time.perf_counter()
         # 3. objects of the rest; towers among the tall ones, by the wires of this message
@@ -1470,7 +1498,9 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
             classes[ground_ids[np.isfinite(dist)]] = TOWER
         if is_wire.any():
             w = xyz[cand[is_wire]]
-            wires, _ = _voxel_centroids(w, column_min(w), WIRE_MEMORY_VOXEL)
+            wires, voxel = _voxel_centroids(w, column_min(w), WIRE_MEMORY_VOXEL)
+            wires = np.column_stack([wires, np.bincount(voxel, tested[is_wire],
+                                                        len(wires)) > 0])
         if is_building.any():
             b = xyz[cand[is_building]]
             buildings, voxel = _voxel_centroids(b, column_min(b), BUILDING_MEMORY_VOXEL)

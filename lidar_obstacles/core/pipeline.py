@@ -64,7 +64,7 @@ def _tower_memory() -> RecentObjects:
 # A strip that catches a wire only in short pieces, or a tower but not its wires, still
 # knows them: wire points 0.5 m apart (40 000: 20 km of conductor), offered out to SAG_FAR.
 def _wire_memory() -> RecentObjects:
-    return RecentObjects(3, seconds=30.0, size=40000, radius=40.0)
+    return RecentObjects(4, seconds=30.0, size=40000, radius=40.0)
 
 
 # A strip that catches a roof only in small pieces still knows the building: roof and wall
