@@ -166,9 +166,9 @@ class ObstacleClasses:
     wires: (W, 4) x, y, z (m) and 1 where the wire passed the wire test itself, 0 where it
     was only followed (through a crown), the wire points thinned to one per
     WIRE_MEMORY_VOXEL, for its known_wires; buildings: (B, 4) x, y, z (m) and 1 for a
-    roof or wall, 0 for what only clings to one (edges, chimneys), the building points thinned to one per
-    BUILDING_MEMORY_VOXEL, for its known_buildings; candidates: (C, 3) m, the points whose
-    shape was sought, for a later thin strip's shape_context."""
+    roof or wall, 0 for what only clings to one (edges, chimneys), the building points
+    thinned to one per BUILDING_MEMORY_VOXEL, for its known_buildings; candidates: (C, 3)
+    m, the points whose shape was sought, for a later thin strip's shape_context."""
 
     classes: np.ndarray
     object_id: np.ndarray
