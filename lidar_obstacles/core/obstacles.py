@@ -651,12 +651,18 @@ def _supported_wires(known: np.ndarray | None) -> np.ndarray:
     known = np.asarray(known, float)
     if known.shape[1] == 3:
         return known
-    tested = known[known[:, 3] > 0, :3]
+    # Voxels, not rows: a wire scanned again and again is remembered many times over (a
+    # simulated corridor's memory: 9 500 rows), and each copy would count.
+    centroids, voxel = _voxel_centroids(known[:, :3], column_min(known[:, :3]),
+                                        WIRE_MEMORY_VOXEL)
+    tested = centroids[np.bincount(voxel, known[:, 3] > 0, len(centroids)) > 0]
     if len(tested) < SEED_VOXELS:
         return np.zeros((0, 3))
-    near = search_tree(tested).query_ball_point(known[:, :3], KNOWN_WIRE_SUPPORT,
-                                                return_length=True)
-    return known[near >= SEED_VOXELS, :3]
+    # the SEED_VOXELS-th nearest tested voxel within reach, not a count of them all
+    dist, _ = tree_query(search_tree(tested), centroids, k=SEED_VOXELS,
+                         distance_upper_bound=KNOWN_WIRE_SUPPORT,
+                         workers=_workers(len(centroids), SEED_VOXELS))
+    return known[np.isfinite(dist[:, -1])[voxel], :3]
 
 
 def _known_wire_seeds(known: np.ndarray, pts: np.ndarray, found: np.ndarray,
