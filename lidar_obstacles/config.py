@@ -257,6 +257,13 @@ class ObstaclesConfig:
                                      "buildings", "m^2", min=1.0, max=10000.0, tunable=True)
     building_plane_threshold: float = param(0.2, "RANSAC distance threshold of roof/wall "
                                             "planes", "m", min=0.01, max=2.0, tunable=True)
+    building_memory: float = param(1800.0, "roofs and walls found are remembered this long "
+                                   "(one point per 1 m voxel, at most 10 ha of roof), so "
+                                   "that a strip catching a building in small pieces, or a "
+                                   "later pass over it, still knows it; lower it when the "
+                                   "clouds' frame drifts (odometry without GNSS), where old "
+                                   "roofs would stand in the wrong place", "s", min=0.0,
+                                   max=86400.0)
     marker_lifetime: float = param(2.0, "an object's box and label in `obstacle_markers` "
                                    "vanish this long after their cloud unless a newer cloud "
                                    "replaces them, so that RViz shows no stale obstacles once "

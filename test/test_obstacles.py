@@ -1312,3 +1312,86 @@ def test_a_crane_is_an_unclassified_structure_and_a_tree_beside_it_vegetation(mo
     monkeypatch.setattr(obstacles, "STRUCTURE_BEAMS", 2.0)  # no structures: it was a tree
     res = classify_obstacles(xyz, truth == 2, xyz[:, 2].astype(np.float32), cfg=CFG.obstacles)
     assert (res.classes[truth == 26] == 1).mean() < 0.1
+
+
+def test_the_building_memory_keeps_one_row_per_voxel_the_newest_with_its_largest_flag():
+    from lidar_obstacles.core.pipeline import RecentObjects
+
+    memory = RecentObjects(4, seconds=100.0, size=1000, radius=5.0, voxel=1.0)
+    roof = np.column_stack([np.mgrid[0:10, 0:5].reshape(2, -1).T + 0.5, np.full(50, 8.5),
+                            np.ones(50)])
+    for stamp in range(20):  # the same roof in twenty messages: still 50 rows
+        memory.add(roof, float(stamp))
+    assert len(memory.rows) == 50 and np.all(memory.stamps == 19.0)
+    # a voxel seen again only as what clings to a roof stays a roof; two rows of one
+    # message in one voxel are one; a new voxel is added
+    clinging = np.array([[0.2, 0.2, 8.1, 0.0], [0.8, 0.9, 8.9, 0.0], [20.5, 0.5, 8.5, 0.0]])
+    memory.add(clinging, 20.0)
+    assert len(memory.rows) == 51
+    row = memory.rows[np.all(np.floor(memory.rows[:, :3]) == [0, 0, 8], axis=1)]
+    assert len(row) == 1 and row[0, 3] == 1.0 and np.allclose(row[0, :3], [0.2, 0.2, 8.1])
+    assert memory.rows[np.floor(memory.rows[:, 0]) == 20][0, 3] == 0.0
+    # the bounds hold: the oldest go first
+    memory.add(np.array([[50.5, 0.5, 8.5, 1.0]]), 150.0)
+    assert len(memory.rows) == 1
+    small = RecentObjects(4, seconds=100.0, size=10, radius=5.0, voxel=1.0)
+    small.add(roof, 0.0)
+    assert len(small.rows) == 10
+
+
+def _flat_roof_piece(x0: float, x1: float, y1: float, seed: int):
+    """Flat ground and a flat roof 8 m up, seen over x0..x1, y 0..y1 only, scanned 0.25 m
+    apart."""
+    rng = np.random.default_rng(seed)
+    g = np.column_stack([rng.uniform(-10, 30, 12000), rng.uniform(-10, 20, 12000),
+                         rng.normal(0, 0.02, 12000)])
+    rx, ry = np.meshgrid(np.arange(x0, x1, 0.25), np.arange(0.0, y1, 0.25))
+    roof = np.column_stack([rx.ravel(), ry.ravel(), 8.0 + rng.normal(0, 0.02, rx.size)])
+    xyz = np.concatenate([g, roof])
+    ground = np.arange(len(xyz)) < len(g)
+    return xyz, ground, np.where(ground, 0.0, xyz[:, 2]).astype(np.float32)
+
+
+def test_a_later_pass_over_a_remembered_building_knows_a_small_piece_of_its_roof():
+    """A piece of roof smaller than building_min_area is a building where an earlier message
+    found the roof it belongs to, for `obstacles.building_memory` seconds: a survey's
+    second flight line over a town came 22 minutes after its first (AHN4)."""
+    from dataclasses import replace
+
+    from lidar_obstacles.core.pipeline import GroundStep, ObstacleDetector
+
+    def step(det, x0, x1, y1, stamp):
+        xyz, ground, hag = _flat_roof_piece(x0, x1, y1, int(stamp) % 1000)
+        res = det.obstacle_step(GroundStep(xyz, ground, hag, stamp, None, {}))
+        return (res.classes[~ground] == 6).mean()
+
+    assert 16.0 < CFG.obstacles.building_min_area  # the piece: 3 x 4 m, 16 cells of 1 m
+    assert step(ObstacleDetector(), 9.0, 12.0, 4.0, 0.0) == 0.0  # alone: too small
+    det = ObstacleDetector()
+    assert det.cfg.obstacles.building_memory >= 1800.0
+    assert step(det, 0.0, 8.5, 10.0, 0.0) == 1.0
+    assert step(det, 9.0, 12.0, 4.0, 1356.0) == 1.0  # a later pass: known
+    det.reconfigure(replace(det.cfg, obstacles=replace(det.cfg.obstacles,
+                                                       building_memory=30.0)))
+    assert step(det, 9.0, 12.0, 4.0, 1400.0) == 0.0  # forgotten
+
+
+def test_a_level_line_on_a_known_roof_is_no_wire_but_a_wire_over_one_is():
+    """A survey's 0.1 s strip across a flat roof is linear and level, as a wire; on a roof
+    or wall an earlier message found it is not one (AHN4 streamed: such "wires" beside a
+    wall made the building a tower). A wire 8 m over a known roof stays a wire, and so does
+    one beside what only clung to a roof."""
+    xyz, ground, hag = _wire_strip(0.0, 30.0, 3)
+    gx, gy = np.meshgrid(np.arange(0.5, 30.0, 1.0), np.arange(3.5, 7.0, 1.0))
+
+    def wire_share(z: float, flag: float) -> float:
+        rows = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, z),
+                                np.full(gx.size, flag)])
+        res = classify_obstacles(xyz, ground, hag, cfg=CFG.obstacles, known_buildings=rows)
+        return (res.classes[~ground] == 14).mean()
+
+    assert wire_share(20.0, 1.0) == 0.0
+    assert wire_share(12.0, 1.0) == 1.0
+    assert wire_share(20.0, 0.0) == 1.0
+    res = classify_obstacles(xyz, ground, hag, cfg=CFG.obstacles)
+    assert (res.classes[~ground] == 14).all()

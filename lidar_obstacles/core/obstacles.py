@@ -127,6 +127,7 @@ CURVED_FOOT = 2.0  # m: ... and which is steep where it comes this close to the 
 CURVED_FOOT_NZ = np.cos(np.radians(45.0))  # (its normal's median z there at most this)
 BUILDING_PLANARITY = 0.5  # (l2 - l3) / l1 of a roof or wall neighbourhood
 BUILDING_REACH = 1.5  # m: rough points this close to a roof (edges, chimneys) join it
+ROOF_WIRE_REACH = 1.0  # m: no wire this close to a known roof's 1 m voxel centroid
 # The foot of a wall, below `obstacles.min_height` (not an obstacle candidate), is building
 # where it lies within WALL_FOOT_REACH on the map of the building's points up to
 # WALL_FOOT_BAND above that height (see _wall_feet).
@@ -604,6 +605,22 @@ def _wires(xyz: np.ndarray, cand: np.ndarray, hag: np.ndarray, shape: LocalShape
         ok = (length >= WIRE_MIN_RUN) & _seeds_run_one_way(runs, pts, shape.axis[wl])
         is_wire[wl[ok[runs[:len(wl)]]]] = True
     return is_wire
+
+
+def _on_known_roofs(pts: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """(P,) bool: which of the points pts (P, 3) m lie within ROOF_WIRE_REACH of a roof or
+    wall of an earlier message (known (B, 4), `_buildings`' rows). A survey's 0.1 s strip
+    across a flat roof is a few scan lines wide, linear and level: the wire test passed
+    it, and such "wires" beside a wall then made the building a tower (AHN4 streamed: 139
+    roof points wire, 389 tower). A wire that touches a roof is not one a UAV flies
+    under."""
+    roofs = known[known[:, 3] > 0, :3]
+    roofs = _in_box(roofs, column_min(pts) - ROOF_WIRE_REACH,
+                    column_max(pts) + ROOF_WIRE_REACH)
+    if len(roofs) == 0:
+        return np.zeros(len(pts), bool)
+    dist, _ = search_tree(roofs).query(pts, distance_upper_bound=ROOF_WIRE_REACH)
+    return np.isfinite(dist)
 
 
 def _seeds_run_one_way(runs: np.ndarray, pts: np.ndarray, axis: np.ndarray) -> np.ndarray:
@@ -1447,6 +1464,8 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
         shape = local_shape(xyz[cand], cfg.feature_radius, context=context)
         # 2. wires
         is_wire = _wires(xyz, cand, hag, shape, cfg, known_wires)
+        if is_wire.any() and (known_buildings[:, 3] > 0).any():
+            is_wire[is_wire] = ~_on_known_roofs(xyz[cand[is_wire]], known_buildings)
         tested = is_wire.copy()  # (before the following through crowns)
         classes[cand[is_wire]] = WIRE
         t2 = time.perf_counter()

@@ -33,12 +33,20 @@ class RecentObjects:
     """What earlier messages recognised, kept for a while: rows whose first two columns are
     x, y (m), each with the stamp (s) of its message. Newest first, at most `size` rows
     (bounded memory on any flight), none older than `seconds`; `near` offers the rows
-    within `radius` m of a box."""
+    within `radius` m of a box.
 
-    def __init__(self, width: int, seconds: float, size: int, radius: float) -> None:
+    With `voxel` (m), the rows' first three columns are x, y, z and a voxel of that fixed
+    grid holds one row: the newest, its last column (a flag: a roof, not only what clings
+    to one) the largest of theirs. A place seen again then costs no more rows: the
+    simulated `mixed` flight's roofs were 31 684 rows in 1 406 voxels after 10 s, each
+    roof seen again in every message that caught it."""
+
+    def __init__(self, width: int, seconds: float, size: int, radius: float,
+                 voxel: float | None = None) -> None:
         self.rows = np.zeros((0, width))
         self.stamps = np.zeros(0)
-        self.seconds, self.size, self.radius = seconds, size, radius
+        self.cells = np.zeros((0, 3), np.int64)  # with `voxel`: each row's voxel
+        self.seconds, self.size, self.radius, self.voxel = seconds, size, radius, voxel
 
     def near(self, lo: np.ndarray, hi: np.ndarray, stamp: float) -> np.ndarray:
         """(K, width) the rows within `radius` of the box lo..hi (2,) m, not too old."""
@@ -49,10 +57,44 @@ class RecentObjects:
 
     def add(self, rows: np.ndarray, stamp: float) -> None:
         """Remember (R, width) rows of the message stamped `stamp` s; forget the old."""
-        all_rows = np.concatenate([rows, self.rows])
-        stamps = np.concatenate([np.full(len(rows), stamp), self.stamps])
-        keep = np.flatnonzero(stamps >= stamp - self.seconds)[:self.size]
-        self.rows, self.stamps = all_rows[keep], stamps[keep]
+        stamps = np.full(len(rows), float(stamp))
+        cells = self.cells[:0]
+        old = np.ones(len(self.rows), bool)
+        if self.voxel is not None and len(rows):
+            rows, cells, old = self._merged(rows)
+            stamps = stamps[:len(rows)]
+        all_rows = np.concatenate([rows, self.rows[old]])
+        all_stamps = np.concatenate([stamps, self.stamps[old]])
+        keep = np.flatnonzero(all_stamps >= stamp - self.seconds)[:self.size]
+        self.rows, self.stamps = all_rows[keep], all_stamps[keep]
+        if self.voxel is not None:
+            self.cells = np.concatenate([cells, self.cells[old]])[keep]
+
+    def _merged(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(R', width) the new rows one per voxel, (R', 3) their voxels, and (K,) bool: the
+        old rows to keep (those in no voxel of the new ones, whose flags the new take)."""
+        cells = np.floor(rows[:, :3] / self.voxel).astype(np.int64)
+        lo, hi = cells.min(axis=0), cells.max(axis=0)
+        span = hi - lo + 1  # numbered within the new rows' box: exact, however far out
+        new_key = ((cells[:, 0] - lo[0]) * span[1] + cells[:, 1] - lo[1]) * span[2] \
+            + cells[:, 2] - lo[2]
+        key, first, group = np.unique(new_key, return_index=True, return_inverse=True)
+        flag = np.full(len(key), -np.inf)
+        np.maximum.at(flag, group, rows[:, -1])
+        rows, cells = rows[first], cells[first]
+        old = np.ones(len(self.rows), bool)
+        inside = np.flatnonzero(all_columns((self.cells >= lo) & (self.cells <= hi)))
+        if len(inside):
+            c = self.cells[inside] - lo
+            old_key = (c[:, 0] * span[1] + c[:, 1]) * span[2] + c[:, 2]
+            at = np.searchsorted(key, old_key)
+            same = at < len(key)
+            same[same] = key[at[same]] == old_key[same]
+            np.maximum.at(flag, at[same], self.rows[inside[same], -1])
+            old[inside[same]] = False
+        rows = rows.copy()
+        rows[:, -1] = flag
+        return rows, cells, old
 
 
 # A strip that catches only a tower's legs still knows it: x, y, radius and height (m) of
@@ -67,10 +109,14 @@ def _wire_memory() -> RecentObjects:
     return RecentObjects(4, seconds=30.0, size=40000, radius=40.0)
 
 
-# A strip that catches a roof only in small pieces still knows the building: roof and wall
-# points 1 m apart (100 000: ~10 ha of roof), offered as far as a piece may continue them.
-def _building_memory() -> RecentObjects:
-    return RecentObjects(4, seconds=30.0, size=100000, radius=5.0)
+# A strip that catches a roof only in small pieces still knows the building, and so does a
+# later pass over it: roof and wall points, one per 1 m voxel (100 000: ~10 ha of roof),
+# offered as far as a piece may continue them.
+def _building_memory(seconds: float) -> RecentObjects:
+    from lidar_obstacles.core.obstacles import BUILDING_MEMORY_VOXEL
+
+    return RecentObjects(4, seconds=seconds, size=100000, radius=5.0,
+                         voxel=BUILDING_MEMORY_VOXEL)
 
 
 # How long a message's obstacle candidates are kept for the shape context of a thin strip
@@ -220,7 +266,7 @@ class ObstacleDetector:
         self._obstacle_rng = np.random.default_rng(self.cfg.ransac.seed)
         self._feature_rng = np.random.default_rng(self.cfg.features.seed)
         self.towers, self.wires = _tower_memory(), _wire_memory()
-        self.buildings = _building_memory()
+        self.buildings = _building_memory(self.cfg.obstacles.building_memory)
         self.candidates: deque[tuple[float, np.ndarray]] = deque()  # (stamp s, (C, 3) m)
 
     def reconfigure(self, cfg: ObstacleDetectorConfig) -> None:
@@ -231,6 +277,7 @@ class ObstacleDetector:
             self._obstacle_rng = np.random.default_rng(cfg.ransac.seed)
         if cfg.features.seed != self.cfg.features.seed:
             self._feature_rng = np.random.default_rng(cfg.features.seed)
+        self.buildings.seconds = cfg.obstacles.building_memory
         self.cfg = cfg
 
     def process(self, xyz: np.ndarray, *, stamp: float = 0.0,
