@@ -22,7 +22,8 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from lidar_obstacles.config import DemBuilderConfig, KrigingConfig, ThinningConfig
-from lidar_obstacles.core.arrays import all_columns, column_min, tree_query, unique_ints
+from lidar_obstacles.core.arrays import (all_columns, column_max, column_min, tree_query,
+                                         unique_ints)
 from lidar_obstacles.core.interpolate import (Variogram, degeneracy, interpolate,
                                               kriging_variogram, merge_coincident)
 from lidar_obstacles.errors import CloudFormatError, ConfigError
@@ -512,7 +513,7 @@ def build_dem(ground_xyz: np.ndarray, *, cfg: DemBuilderConfig,
     if len(xyz) == 0 and bounds is None:
         return empty_grid(res, "no ground points")
     box = (np.array(bounds, dtype=np.float64).reshape(2, 2) if bounds is not None
-           else np.stack([xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)]))
+           else np.stack([column_min(xyz[:, :2]), column_max(xyz[:, :2])]))
     lo, hi = np.floor(box[0] / res), np.floor(box[1] / res)
     cols, rows = hi - lo + 1  # floats: a box of 1e19 cells overflows int64
     if rows * cols > cfg.dem.max_cells:
@@ -569,8 +570,8 @@ class RollingDem:
         if self.cfg.dem.extent > 0:
             origin, shape = self._window(xyz, vehicle_xy)
         else:
-            lo = np.floor(xyz[:, :2].min(axis=0) / res).astype(np.int64)
-            hi = np.floor(xyz[:, :2].max(axis=0) / res).astype(np.int64) + 1
+            lo = np.floor(column_min(xyz[:, :2]) / res).astype(np.int64)
+            hi = np.floor(column_max(xyz[:, :2]) / res).astype(np.int64) + 1
             if self._cells is not None:
                 old_lo = self._cells.origin_ij
                 old_hi = old_lo + np.array(self._cells.shape[::-1])

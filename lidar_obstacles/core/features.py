@@ -67,7 +67,8 @@ PLANE = 1  # cluster code: one cluster of normals
 # normal: |a x b| = |a| |b| sin(angle), so its direction is decided by noise.
 MIN_TRIANGLE_ANGLE = 5.0  # deg
 MAX_LLOYD = 50  # Lloyd iterations per K-means run; the paper iterates to convergence and
-# 91 normals on the sphere converge in < 10 in practice, the cap only bounds a cycle.
+# the runs on 91 normals on the sphere mostly converge in 3-6 (a few take 20+): the cap
+# only bounds a cycle.
 
 # Working memory per chunk, roughly: the silhouette holds (C, P, P) pairwise distances
 # (66 kB per point at k = 14 in float64, 33 kB in float32) and K-means (C R, P, k')

@@ -35,7 +35,6 @@ neighbours (`shape_context`): its edges cut most of its neighbourhoods.
 """
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -174,9 +173,8 @@ class ObstacleClasses:
     classes: np.ndarray
     object_id: np.ndarray
     objects: tuple[ObstacleObject, ...]
-    timings: dict[str, float] = field(default_factory=dict)
     towers: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
-    wires: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    wires: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     buildings: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     candidates: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
@@ -187,16 +185,15 @@ class ObstacleClasses:
         classes = np.full(len(where), fill, np.uint8)
         object_id = np.full(len(where), -1, np.int32)
         classes[where], object_id[where] = part.classes, part.object_id
-        return ObstacleClasses(classes, object_id, part.objects, part.timings, part.towers,
-                               part.wires, part.buildings, part.candidates)
+        return ObstacleClasses(classes, object_id, part.objects, part.towers, part.wires,
+                               part.buildings, part.candidates)
 
     @staticmethod
     def repeat(part: "ObstacleClasses", inverse: np.ndarray) -> "ObstacleClasses":
         """The classes of a cloud of N points whose point i is point inverse[i] ((N,) int)
         of `part`'s (each copy of a point gets its class and object)."""
         return ObstacleClasses(part.classes[inverse], part.object_id[inverse], part.objects,
-                               part.timings, part.towers, part.wires, part.buildings,
-                               part.candidates)
+                               part.towers, part.wires, part.buildings, part.candidates)
 
 
 def search_tree(points: np.ndarray) -> cKDTree:
@@ -414,7 +411,7 @@ def shape_context(recent: list[np.ndarray], cloud_xy: np.ndarray, radius: float
     lo, hi = base, base + np.array(size)
     parts = []
     for pts in recent:
-        pts = pts[np.all((pts[:, :2] >= lo) & (pts[:, :2] < hi), axis=1)]
+        pts = pts[all_columns((pts[:, :2] >= lo) & (pts[:, :2] < hi))]
         cell = (pts[:, :2] - base).astype(np.int64)
         parts.append(pts[band[cell[:, 0], cell[:, 1]]])
     context = np.concatenate(parts)
@@ -599,7 +596,7 @@ def _wires(xyz: np.ndarray, cand: np.ndarray, hag: np.ndarray, shape: LocalShape
         if len(known):
             # enough of the known wire to make up a run (its far parts change nothing)
             lo, hi = column_min(pts) - WIRE_MIN_RUN, column_max(pts) + WIRE_MIN_RUN
-            pts = np.concatenate([pts, known[np.all((known >= lo) & (known <= hi), axis=1)]])
+            pts = np.concatenate([pts, known[all_columns((known >= lo) & (known <= hi))]])
         runs = voxel_components(pts, WIRE_LINK)
         _, length, _ = _label_stats(runs, pts, np.zeros(len(pts)))
         ok = (length >= WIRE_MIN_RUN) & _seeds_run_one_way(runs, pts, shape.axis[wl])
@@ -701,7 +698,7 @@ def _known_wire_seeds(known: np.ndarray, pts: np.ndarray, found: np.ndarray,
         return none, none
     lo, hi = column_min(pts), column_max(pts)
     reach = KNOWN_WIRE_REACH + KNOWN_WIRE_AXIS_REACH
-    known = known[np.all((known >= lo - reach) & (known <= hi + reach), axis=1)]
+    known = known[all_columns((known >= lo - reach) & (known <= hi + reach))]
     if len(known) < 3:
         return none, none
     known, _ = _voxel_centroids(known, column_min(known), WIRE_MEMORY_VOXEL)
@@ -1037,7 +1034,7 @@ def _buildings(xyz: np.ndarray, cand: np.ndarray, shape: LocalShape, allowed: np
 
 def _in_box(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """The rows of (K, 3) pts within the box lo..hi (3,)."""
-    return pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
+    return pts[all_columns((pts >= lo) & (pts <= hi))]
 
 
 class _WireDirections:
@@ -1437,13 +1434,12 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
     known_buildings: (B, 4) their building points (ObstacleClasses.buildings);
     context: (C, 3) m, points of earlier messages beyond a thin strip's edge, neighbours in
     the shape features only (`shape_context`)."""
-    t0 = time.perf_counter()
     rng = rng or np.random.default_rng(0)
     n = len(xyz)
     classes = np.full(n, GROUND, np.uint8)
     object_id = np.full(n, -1, np.int32)
     if n == 0:
-        return ObstacleClasses(classes, object_id, (), {"total": 0.0})
+        return ObstacleClasses(classes, object_id, ())
     hag = np.nan_to_num(np.asarray(height_above_ground, np.float64), nan=0.0)
     nong = np.flatnonzero(~ground)
     classes[nong] = vegetation_class(hag[nong])
@@ -1454,7 +1450,6 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
         classes[nong[noise]] = NOISE
         nong = nong[~noise]
     cand = nong[hag[nong] >= cfg.min_height]
-    t1 = time.perf_counter()
     objects: list[ObstacleObject] = []
     towers, wires, buildings = np.zeros((0, 4)), np.zeros((0, 4)), np.zeros((0, 4))
     known_wires = _supported_wires(known_wires)
@@ -1468,7 +1463,6 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
             is_wire[is_wire] = ~_on_known_roofs(xyz[cand[is_wire]], known_buildings)
         tested = is_wire.copy()  # (before the following through crowns)
         classes[cand[is_wire]] = WIRE
-        t2 = time.perf_counter()
         # 3. objects of the rest; towers among the tall ones, by the wires of this message
         # and of earlier ones (a strip may catch a tower but not the wires it carries)
         wire_xyz = np.concatenate([xyz[cand[is_wire]], known_wires])
@@ -1539,15 +1533,9 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
                 next_id += int(runs.max()) + 1
         _regroup_leftovers(xyz[cand[rest]], labels, kept, (is_building | is_wire | tower)[rest],
                            object_id, cand[rest], next_id, cfg)
-        t3 = time.perf_counter()
         objects = _objects(xyz, hag, classes, object_id)
-    else:
-        t2 = t3 = time.perf_counter()
-    t4 = time.perf_counter()
-    return ObstacleClasses(classes, object_id, tuple(objects),
-                           {"noise": t1 - t0, "wires": t2 - t1, "objects": t3 - t2,
-                            "summaries": t4 - t3, "total": t4 - t0}, towers, wires,
-                           buildings, xyz[cand])
+    return ObstacleClasses(classes, object_id, tuple(objects), towers, wires, buildings,
+                           xyz[cand])
 
 
 def _structures(labels: np.ndarray, shape: LocalShape, rest: np.ndarray,

@@ -51,7 +51,7 @@ class RecentObjects:
     def near(self, lo: np.ndarray, hi: np.ndarray, stamp: float) -> np.ndarray:
         """(K, width) the rows within `radius` of the box lo..hi (2,) m, not too old."""
         xy = self.rows[:, :2]
-        keep = (np.all((xy >= lo - self.radius) & (xy <= hi + self.radius), axis=1)
+        keep = (all_columns((xy >= lo - self.radius) & (xy <= hi + self.radius))
                 & (self.stamps >= stamp - self.seconds))
         return self.rows[keep]
 
@@ -74,7 +74,7 @@ class RecentObjects:
         """(R', width) the new rows one per voxel, (R', 3) their voxels, and (K,) bool: the
         old rows to keep (those in no voxel of the new ones, whose flags the new take)."""
         cells = np.floor(rows[:, :3] / self.voxel).astype(np.int64)
-        lo, hi = cells.min(axis=0), cells.max(axis=0)
+        lo, hi = column_min(cells), column_max(cells)
         span = hi - lo + 1  # numbered within the new rows' box: exact, however far out
         new_key = ((cells[:, 0] - lo[0]) * span[1] + cells[:, 1] - lo[1]) * span[2] \
             + cells[:, 2] - lo[2]
@@ -106,7 +106,9 @@ def _tower_memory() -> RecentObjects:
 # A strip that catches a wire only in short pieces, or a tower but not its wires, still
 # knows them: wire points 0.5 m apart (40 000: 20 km of conductor), offered out to SAG_FAR.
 def _wire_memory() -> RecentObjects:
-    return RecentObjects(4, seconds=30.0, size=40000, radius=40.0)
+    from lidar_obstacles.core.obstacles import SAG_FAR
+
+    return RecentObjects(4, seconds=30.0, size=40000, radius=SAG_FAR)
 
 
 # A strip that catches a roof only in small pieces still knows the building, and so does a
@@ -260,7 +262,7 @@ class ObstacleDetector:
 
     def __init__(self, cfg: ObstacleDetectorConfig | None = None) -> None:
         self.cfg = cfg or ObstacleDetectorConfig()
-        # One random stream per half (ground: the `ransac` and `tin` methods; obstacles: the
+        # One random stream per half (ground: the `ransac` method's tiles; obstacles: the
         # roofs' RANSAC), so that the halves may run in different processes.
         self.ground = StreamingGround(self.cfg)
         self._obstacle_rng = np.random.default_rng(self.cfg.ransac.seed)

@@ -119,8 +119,9 @@ def _read_laspy(path: Path) -> LasData:
 
 
 # No survey's coordinates are larger (m): a UTM northing is ~1e7, ECEF ~6.4e6. Beyond it the
-# header's scale or offset is wrong, and the points would overflow whatever grids them.
-MAX_COORDINATE = 1e9
+# header's scale or offset is wrong, and the points would overflow whatever grids them (the
+# detector's limit, core.ground.MAX_COORDINATE, is the same: a file read is a file it takes).
+MAX_COORDINATE = 1e8
 
 
 def read_las(path: str | Path, *, allow_empty: bool = False) -> LasCloud:
