@@ -784,13 +784,25 @@ def read_yaml_file(path: str | Path, what: str) -> Any:
         raise ConfigError(f"{what} {path}: {exc}".splitlines()[0]) from None
 
 
+# Parameters rclpy itself declares or reads on every node. A params file may set them
+# (launch writes `use_sim_time: true` into one; `ros2 param dump` writes the outputs'
+# `qos_overrides`): they are not the schema's, and not errors.
+ROS_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
+
+
+def ros_own(name: str) -> bool:
+    """A parameter rclpy declares or reads itself (not in the schema)."""
+    return name in ROS_PARAMETERS or name.startswith("qos_overrides.")
+
+
 def load_params_file(path: str | Path, cls: type[T], node_name: str, *,
                      base: T | None = None) -> T:
     """Read a ROS 2 params YAML (``/**:``, ``<node>:`` or ``/**/<node>:`` with
     ``ros__parameters``) over `base` (default: the schema's defaults).
 
-    Nested sections and dotted keys are both accepted. Raises ConfigError for a missing
-    file, bad YAML, unknown parameters or invalid values.
+    Nested sections and dotted keys are both accepted; rclpy's own parameters
+    (`ros_own`) are left to it. Raises ConfigError for a missing file, bad YAML, unknown
+    parameters or invalid values.
     """
     base = cls() if base is None else base
     path = Path(path)
@@ -811,7 +823,7 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str, *,
                 raise ConfigError(f"params file {path}: '{key}' ros__parameters is not a "
                                   "mapping of names to values")
             try:
-                flat = _flatten_mapping(params)
+                flat = {k: v for k, v in _flatten_mapping(params).items() if not ros_own(k)}
             except ConfigError as exc:
                 raise ConfigError(f"params file {path}: {exc}") from None
             _check_node_section(path, key_s.rsplit("/", 1)[-1], flat)

@@ -123,6 +123,14 @@ def test_params_file_forms(tmp_path):
     shared.write_text("flight_stack:\n  ros__parameters:\n    rate: 5\n"
                       "/uav1/obstacle_detector:\n  ros__parameters:\n    tiling.size: 30.0\n")
     assert load_params_file(shared, ObstacleDetectorConfig, "obstacle_detector").tiling.size == 30
+    # rclpy's own parameters are rclpy's: launch's use_sim_time under /**, and the outputs'
+    # qos_overrides as `ros2 param dump` writes them (both stopped the nodes: "unknown")
+    ros = tmp_path / "ros.yaml"
+    ros.write_text("/**:\n  ros__parameters:\n    use_sim_time: true\n"
+                   "/uav1/obstacle_detector:\n  ros__parameters:\n    tiling.size: 31.0\n"
+                   "    start_type_description_service: true\n    qos_overrides:\n"
+                   "      /uav1/clearance:\n        publisher:\n          depth: 3\n")
+    assert load_params_file(ros, ObstacleDetectorConfig, "obstacle_detector").tiling.size == 31
     # a value bad for the other node is bad input for this one too (one shared file)
     magic = tmp_path / "magic.yaml"
     magic.write_text("/**:\n  ros__parameters:\n    ground.method: magic\n")

@@ -462,6 +462,11 @@ def test_bad_parameter_at_start_exits_2_with_one_line(args, expected):
      "parameter 'dem.resolution': -5.0 is outside its range [0.05, 100]"),
     # bad YAML: rcl's "[ERROR] [rcl]: Failed to parse global arguments" came first
     ("not: [valid\n", "line 2, column 1: expected ',' or ']', but got '<stream end>'"),
+    # keyed by the bare name, under a namespace: rcl gave the section to no node, and the
+    # node ran on its defaults without a word
+    ("obstacle_detector:\n  ros__parameters:\n    tiling:\n      size: 30.0\n",
+     f"section 'obstacle_detector' does not reach the node {NS}/obstacle_detector (rcl "
+     f"matches the whole name): key it '{NS}/obstacle_detector' or '/**/obstacle_detector'"),
 ])
 def test_a_params_file_is_read_as_replay_reads_it(tmp_path, text, expected):
     """The nodes take a params file on the terms `replay` and `evaluate` take it, in one
@@ -872,11 +877,23 @@ def test_under_sim_time_without_a_clock_the_node_still_matches_its_input_and_rep
     assert code == 0, out
 
 
-def test_an_output_takes_qos_overrides(ros_node):
+@pytest.mark.parametrize("how", ["-p", "params file"])
+def test_an_output_takes_qos_overrides(ros_node, how, tmp_path):
     # `-p qos_overrides./ns/clearance.publisher.durability:=transient_local` (a Nav2 costmap
-    # layer subscribes transient-local) was accepted and did nothing
-    proc = _start("lidar_obstacles.scripts.obstacle_detector", "-p",
-                  f"qos_overrides.{NS}/clearance.publisher.durability:=transient_local")
+    # layer subscribes transient-local) was accepted and did nothing. In a params file, as
+    # `ros2 param dump` writes it, and with launch's `use_sim_time` under /**, the node
+    # refused to start ("unknown parameter 'use_sim_time'", status 2).
+    if how == "-p":
+        args = ["-p", f"qos_overrides.{NS}/clearance.publisher.durability:=transient_local"]
+    else:
+        params = tmp_path / "params.yaml"
+        params.write_text(
+            "/**:\n  ros__parameters:\n    use_sim_time: true\n"
+            "/**/obstacle_detector:\n  ros__parameters:\n    tiling:\n      size: 40.0\n"
+            f"    qos_overrides:\n      {NS}/clearance:\n        publisher:\n"
+            "          durability: transient_local\n")
+        args = ["--params-file", str(params)]
+    proc = _start("lidar_obstacles.scripts.obstacle_detector", *args)
 
     def durability(topic: str):
         infos = ros_node.get_publishers_info_by_topic(f"{NS}/{topic}")

@@ -468,11 +468,48 @@ def _check_params_files(argv: list[str], cls: type | None) -> None:
     name = next((k for k, c in NODE_CONFIGS.items() if c is cls), None)
     if name is None:
         return
+    namespace = "/"
     for rule in _ros_options(argv, "-r"):
         if rule.startswith(("__node:=", "__name:=")):
             return  # (its sections are named otherwise: rcl's word stands)
+        if rule.startswith("__ns:="):
+            namespace = "/" + rule.split(":=", 1)[1].strip("/")
+    full_name = namespace.rstrip("/") + "/" + name
     for path in _ros_options(argv, "--params-file"):
         load_params_file(path, cls, name)
+        _check_sections_apply(path, name, full_name)
+
+
+def _check_sections_apply(path: str, name: str, full_name: str) -> None:
+    """ConfigError when a section of the params file at `path` is meant for this node
+    (keyed by its name) but rcl will not give it to the node `full_name`: rcl matches a
+    section's key against the whole name, so `obstacle_detector:` is the node in the root
+    namespace only, and under `-r __ns:=/uav1` the node ran on its defaults without a
+    word. `/**/obstacle_detector` or `/uav1/obstacle_detector` reach it."""
+    from lidar_obstacles.config import read_yaml_file
+
+    data = read_yaml_file(path, "params file")
+    for key in data if isinstance(data, dict) else ():
+        tokens = str(key).strip("/").split("/")
+        if tokens[-1] == name and not _rcl_name_matches(str(key), full_name):
+            raise ConfigError(f"params file {path}: section '{key}' does not reach the node "
+                              f"{full_name} (rcl matches the whole name): key it "
+                              f"'{full_name}' or '/**/{name}'")
+
+
+def _rcl_name_matches(key: str, full_name: str) -> bool:
+    """Whether rcl gives a params file's section `key` to the node `full_name`: the key
+    is a full name (a leading / implied) in which `*` stands for one token and `**` for
+    any number of them."""
+    pattern, tokens = key.strip("/").split("/"), full_name.strip("/").split("/")
+
+    def match(i: int, j: int) -> bool:
+        if i == len(pattern):
+            return j == len(tokens)
+        if pattern[i] == "**":
+            return any(match(i + 1, k) for k in range(j, len(tokens) + 1))
+        return (j < len(tokens) and pattern[i] in ("*", tokens[j])) and match(i + 1, j + 1)
+    return match(0, 0)
 
 
 def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:

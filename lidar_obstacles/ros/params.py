@@ -14,16 +14,8 @@ from rcl_interfaces.msg import (
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from lidar_obstacles.config import NODE_CONFIGS, ParamInfo, params_of, replace
+from lidar_obstacles.config import NODE_CONFIGS, ParamInfo, params_of, replace, ros_own
 from lidar_obstacles.errors import ConfigError
-
-# Parameters rclpy itself declares or reads on every node.
-ROS_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
-
-
-def _ros_own(name: str) -> bool:
-    """A parameter rclpy declares or reads itself (not in the schema)."""
-    return name in ROS_PARAMETERS or name.startswith("qos_overrides.")
 
 
 _TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
@@ -83,7 +75,7 @@ def declare_config(node: Node, cls: type) -> Any:
     # As `load_params_file`: a shared params file may carry another node's parameters,
     # but a name no node knows is a typo the user must hear of, not a silent default.
     all_known = {p.name for c in NODE_CONFIGS.values() for p in params_of(c)}
-    unknown = sorted(n for n in overrides if n not in all_known and not _ros_own(n))
+    unknown = sorted(n for n in overrides if n not in all_known and not ros_own(n))
     if unknown:
         executable = next((k for k, c in NODE_CONFIGS.items() if c is cls), node.get_name())
         raise ConfigError(f"unknown parameter '{unknown[0]}' (`{executable} --help` lists "
@@ -114,7 +106,7 @@ def on_parameter_change(node: Node, get_cfg: Callable[[], Any],
                 for p in params]
 
     def callback(params: list) -> SetParametersResult:
-        ours = {p.name: p.value for p in params if not _ros_own(p.name)}
+        ours = {p.name: p.value for p in params if not ros_own(p.name)}
         if not ours:
             return SetParametersResult(successful=True)  # use_sim_time: rclpy's own
         try:
