@@ -203,7 +203,14 @@ def test_append_fields_keeps_every_input_byte(flavour, layout, seed):
     assert out.shape == points.shape
     names = sorted(points.dtype.names, key=lambda n: points.dtype.fields[n][1])
     assert list(out.dtype.names) == names + ["class", "height_above_ground"]
-    assert out.dtype.itemsize == sum(points.dtype.fields[n][0].itemsize for n in names) + 5
+    # every field aligned to its element's size (at most 8), the point to the largest, and
+    # no more padding than that takes
+    sizes = {n: min(out.dtype.fields[n][0].base.itemsize, 8) for n in out.dtype.names}
+    assert all(out.dtype.fields[n][1] % sizes[n] == 0 for n in out.dtype.names)
+    assert out.dtype.itemsize % max(sizes.values()) == 0
+    packed = sum(points.dtype.fields[n][0].itemsize for n in names) + 5
+    assert packed <= out.dtype.itemsize < packed + 8 * len(sizes)
+    assert out.dtype.fields["height_above_ground"][1] % 4 == 0
     for name in names:
         assert out.dtype.fields[name][0] == points.dtype.fields[name][0]
         assert np.array_equal(field_bytes(out, name), field_bytes(points, name))
@@ -344,9 +351,12 @@ def test_append_fields_details():
     points = simple_points(3)
     out = append_fields(points, {"class": np.array([1, 2, 6], np.uint8),
                                  "normal": np.ones((3, 3), np.float32)})
-    assert out.dtype.itemsize == 26 + 1 + 12
+    # each field at a multiple of its element's size: `time` (FLOAT64) 18 -> 24, `normal`
+    # 36 after `class` at 32; the point a multiple of 8
+    assert [out.dtype.fields[n][1] for n in out.dtype.names] == [0, 4, 8, 12, 16, 24, 32, 36]
+    assert out.dtype.itemsize == 48
     assert out.dtype.fields["normal"][0] == np.dtype(("<f4", (3,)))
-    assert fields_from_dtype(out.dtype)[-1] == FieldSpec("normal", 27, FLOAT32, 3)
+    assert fields_from_dtype(out.dtype)[-1] == FieldSpec("normal", 36, FLOAT32, 3)
     with pytest.raises(CloudFormatError, match="already present"):
         append_fields(out, {"class": np.zeros(3, np.uint8)})
     again = append_fields(out, {"class": np.zeros(3, np.uint8)}, overwrite=True)

@@ -125,3 +125,32 @@ def test_a_stamp_with_a_second_or_more_of_nanoseconds_is_malformed():
     msg.header.stamp.sec, msg.header.stamp.nanosec = 2**31 - 1, 1_500_000_000
     with pytest.raises(CloudFormatError, match="nanosec 1500000000, not below 1e9"):
         DetectorStage(ObstacleDetectorConfig()).process(msg)
+
+
+def test_output_clouds_are_aligned_with_zeros_between_fields():
+    """Every FLOAT32 of `ground`, `obstacles` and `dem` starts at a multiple of 4 and
+    every point too (C++ readers map a point to a struct: `height_above_ground` at offset
+    17 and a 13-byte DEM point were read unaligned); the padding is zeros, so a replay
+    writes the same bytes every time."""
+    from lidar_obstacles.core.dem import DemGrid
+
+    pts = np.zeros(6, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1")])
+    pts["x"] = np.arange(6)
+    stage = DetectorStage(ObstacleDetectorConfig())
+    job = stage.start(messages.cloud(pts, messages.header(1, "map")))
+    outputs = dict((name, msg) for name, msg in stage.finish(job)[0]
+                   if name in ("ground", "obstacles"))
+    grid = DemGrid(np.arange(6, dtype=np.float32).reshape(2, 3), np.zeros((2, 3), np.uint8),
+                   np.ones((2, 3), np.uint32), np.zeros(2), 1.0)
+    outputs["dem"] = messages.dem_messages(grid, messages.header(1, "map"))[0]
+    for name, msg in outputs.items():
+        offsets = {f.name: f.offset for f in msg.fields}
+        assert msg.point_step % 4 == 0, name
+        assert all(offsets[f.name] % 4 == 0 for f in msg.fields if f.datatype == 7), name
+        used = sum(1 if f.datatype in (1, 2) else 4 for f in msg.fields)
+        if msg.width * msg.height:
+            raw = np.frombuffer(bytes(msg.data), np.uint8).reshape(-1, msg.point_step)
+            spans = np.zeros(msg.point_step, bool)
+            for f in msg.fields:
+                spans[f.offset:f.offset + (1 if f.datatype in (1, 2) else 4)] = True
+            assert used < msg.point_step and not raw[:, ~spans].any(), name

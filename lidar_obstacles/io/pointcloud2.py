@@ -415,16 +415,24 @@ def to_native(points: np.ndarray) -> np.ndarray:
     return out
 
 
-def _byte_runs(dtype: np.dtype, names: Iterable[str]) -> list[tuple[int, int]]:
-    """(offset, nbytes) of the maximal byte-contiguous runs covering the named fields."""
-    spans = sorted((_field(dtype, n)[1], _field(dtype, n)[0].itemsize) for n in names)
+def _byte_runs(spans: Iterable[tuple[int, int, int]]) -> list[tuple[int, int, int]]:
+    """The maximal runs (input offset, output offset, nbytes) of fields copied from one
+    layout to another, spans (input offset, output offset, nbytes) of each, that are
+    byte-contiguous in both."""
     runs: list[list[int]] = []
-    for offset, size in spans:
-        if runs and runs[-1][0] + runs[-1][1] == offset:
-            runs[-1][1] += size
+    for src, dst, size in sorted(spans):
+        if runs and runs[-1][0] + runs[-1][2] == src and runs[-1][1] + runs[-1][2] == dst:
+            runs[-1][2] += size
         else:
-            runs.append([offset, size])
-    return [(offset, size) for offset, size in runs]
+            runs.append([src, dst, size])
+    return [(src, dst, size) for src, dst, size in runs]
+
+
+def _aligned(offset: int, field_dtype: np.dtype, align: int) -> tuple[int, int]:
+    """(the offset in bytes at which a field of `field_dtype` starts after `offset`, the
+    point's alignment so far `align` with it): a multiple of its element's size, at most 8."""
+    size = min((field_dtype.base if field_dtype.subdtype else field_dtype).itemsize, 8)
+    return -(-offset // size) * size, max(align, size)
 
 
 def append_fields(
@@ -439,9 +447,14 @@ def append_fields(
     overwrite: drop existing fields that have a name in ``new`` (e.g. when re-processing
         an already classified cloud); when False such a clash raises CloudFormatError.
     Returns an array of the same shape whose existing fields keep their names, order
-    (by offset), datatypes, byte order and exact bytes, packed without padding, with the
-    new fields appended in ``new``'s order. New fields take the byte order of ``points``
-    (so a big-endian cloud stays publishable as big-endian).
+    (by offset), datatypes, byte order and exact bytes, with the new fields appended in
+    ``new``'s order. New fields take the byte order of ``points`` (so a big-endian cloud
+    stays publishable as big-endian). Each field starts at a multiple of its element's
+    size (at most 8) and the point's size is a multiple of the largest: a FLOAT32
+    appended after a UINT8 at offset 17 was read unaligned by C++ consumers that map a
+    point to a struct or iterate with ``PointCloud2Iterator<float>`` (undefined
+    behaviour, and slow or a fault on some ARM boards). The input's padding beyond that
+    is dropped.
     """
     if points.dtype.names is None:
         raise CloudFormatError(f"points must be a structured array, got dtype {points.dtype}")
@@ -458,8 +471,10 @@ def append_fields(
     formats: list[np.dtype] = []
     offsets: list[int] = []
     offset = 0
+    align = 1
     for name in kept:
         field_dtype = _field(points.dtype, name)[0]
+        offset, align = _aligned(offset, field_dtype, align)
         names.append(name)
         formats.append(field_dtype)
         offsets.append(offset)
@@ -475,29 +490,31 @@ def append_fields(
             )
         base = values.dtype if values.dtype.itemsize == 1 else values.dtype.newbyteorder(order)
         field_dtype = np.dtype((base, extra)) if extra else base
+        offset, align = _aligned(offset, field_dtype, align)
         names.append(name)
         formats.append(field_dtype)
         offsets.append(offset)
         offset += field_dtype.itemsize
         arrays.append((name, values))
     out_dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets,
-                          "itemsize": offset})
+                          "itemsize": -(-offset // align) * align})
     fields_from_dtype(out_dtype)  # rejects types a PointField cannot carry, naming them
-    out = np.empty(points.shape, dtype=out_dtype)
+    padded = sum(out_dtype.fields[n][0].itemsize for n in names) < out_dtype.itemsize
+    # (zeros between the fields: a message's bytes do not depend on what memory held)
+    out = (np.zeros if padded else np.empty)(points.shape, dtype=out_dtype)
 
     # Copy the kept fields as raw bytes, one void copy per byte-contiguous run: exact bytes
     # whatever the byte order, and about twice as fast as assigning field by field.
-    in_runs = _byte_runs(points.dtype, kept)
-    if in_runs:
-        # Kept fields are packed in offset order, so each input run stays contiguous.
-        starts = {_field(points.dtype, n)[1]: _field(out_dtype, n)[1] for n in kept}
-        run_names = [f"run{i}" for i in range(len(in_runs))]
-        run_formats = [np.dtype((np.void, size)) for _, size in in_runs]
+    runs = _byte_runs([(_field(points.dtype, n)[1], _field(out_dtype, n)[1],
+                        _field(points.dtype, n)[0].itemsize) for n in kept])
+    if runs:
+        run_names = [f"run{i}" for i in range(len(runs))]
+        run_formats = [np.dtype((np.void, size)) for _, _, size in runs]
         src = points.view(np.dtype({"names": run_names, "formats": run_formats,
-                                    "offsets": [o for o, _ in in_runs],
+                                    "offsets": [i for i, _, _ in runs],
                                     "itemsize": points.dtype.itemsize}))
         dst = out.view(np.dtype({"names": run_names, "formats": run_formats,
-                                 "offsets": [starts[o] for o, _ in in_runs],
+                                 "offsets": [o for _, o, _ in runs],
                                  "itemsize": out_dtype.itemsize}))
         for run in run_names:
             dst[run] = src[run]

@@ -93,7 +93,8 @@ def dem_messages(grid: DemGrid, hdr: Header) -> tuple[PointCloud2, Image, MapMet
 
     grid: elevation (rows, cols) metres (NaN unknown), interpolated (rows, cols) uint8,
     origin (2,) metres, resolution metres. The cloud is (rows, cols) points of float32
-    x, y, z (metres) and uint8 interpolated; the image rows * cols float32 elevations.
+    x, y, z (metres) and uint8 interpolated, 16 bytes each; the image rows * cols float32
+    elevations.
     Row r, column c of all three is the cell whose centre is
     origin + ((c + 0.5) * resolution, (r + 0.5) * resolution).
     """
@@ -102,8 +103,11 @@ def dem_messages(grid: DemGrid, hdr: Header) -> tuple[PointCloud2, Image, MapMet
     res = float(grid.resolution)
     xs = (grid.origin[0] + (np.arange(cols) + 0.5) * res).astype(np.float32)
     ys = (grid.origin[1] + (np.arange(rows) + 0.5) * res).astype(np.float32)
-    pts = np.empty((rows, cols), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                        ("interpolated", "u1")])
+    # 16 bytes a point, not 13: the next point's x at a multiple of 4 for C++ readers that
+    # map a point to a struct (zeros in the padding: the same grid, the same bytes)
+    pts = np.zeros((rows, cols), dtype={"names": ["x", "y", "z", "interpolated"],
+                                        "formats": ["<f4", "<f4", "<f4", "u1"],
+                                        "offsets": [0, 4, 8, 12], "itemsize": 16})
     pts["x"] = xs[None, :]
     pts["y"] = ys[:, None]
     pts["z"] = elev
