@@ -238,6 +238,45 @@ def test_play_stopped_exits_130_or_143_and_says_what_it_published(sig, subscribe
     assert re.fullmatch(rf"lidar-obstacles play: {word} \(published: {count}\)\n", err), err
 
 
+def test_play_offers_a_latched_topic_transient_local_as_recorded(ros_node, tmp_path):
+    # `play` published every topic volatile but `/survey_crs`: a DEM consumer, which
+    # subscribes transient-local as the contract makes the DEM topics, got nothing from a
+    # replay's /dem_info (incompatible QoS)
+    from rclpy.serialization import serialize_message
+
+    from lidar_obstacles.io.bags import BagReader, BagWriter
+
+    bag = tmp_path / "latched"
+    with BagWriter(bag) as writer:
+        writer.add_topic("/dem_info", "nav_msgs/msg/MapMetaData", transient_local=True)
+        writer.add_topic("/clearance_info", "nav_msgs/msg/MapMetaData")
+        for i in range(3):
+            raw = serialize_message(MapMetaData(resolution=0.5 + i, width=3, height=2))
+            writer.write("/dem_info", 10**9 * (i + 1), raw)
+            writer.write("/clearance_info", 10**9 * (i + 1), raw)
+    with BagReader(bag) as reader:
+        assert (reader.latched_depth("/dem_info"), reader.latched_depth("/clearance_info")) \
+            == (1, None)
+    got = []
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    sub = ros_node.create_subscription(MapMetaData, "/player_qos_test/dem_info", got.append,
+                                       latched)
+    player = subprocess.Popen(
+        [sys.executable, "-m", "lidar_obstacles.cli", "play", str(bag), "--rate", "10",
+         "--namespace", "/player_qos_test"], cwd=REPO, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+    try:
+        assert _spin_until(ros_node, lambda: player.poll() is not None, 60)
+        assert player.returncode == 0, player.stderr
+        _spin_until(ros_node, lambda: len(got) >= 3, 5)
+        assert [m.resolution for m in got] == [0.5, 1.5, 2.5]
+    finally:
+        ros_node.destroy_subscription(sub)
+        if player.poll() is None:
+            player.kill()
+
+
 def test_play_answers_ctrl_c_while_a_subscriber_does_not_acknowledge(tmp_path):
     # rclpy's wait for the acknowledgements blocks in C, deaf to Ctrl-C: `play` waited up
     # to 15 s for a subscriber that never acknowledges. Such a wait is played here by one

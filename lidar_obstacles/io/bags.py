@@ -138,6 +138,20 @@ class BagReader:
             counts[key] = counts.get(key, 0) + int(conn.msgcount)
         return [TopicInfo(t, m, c) for (t, m), c in sorted(counts.items())]
 
+    def latched_depth(self, topic: str) -> int | None:
+        """The depth a recorder offered `topic` with when it published it transient-local
+        (rosbag2's offered QoS; a ROS 1 bag's latching: 1), else None."""
+        depths = []
+        for conn in self._reader.connections:
+            if conn.topic != topic:
+                continue
+            if getattr(conn.ext, "latching", 0):
+                depths.append(1)
+            for qos in getattr(conn.ext, "offered_qos_profiles", None) or ():
+                if getattr(getattr(qos, "durability", None), "name", "") == "TRANSIENT_LOCAL":
+                    depths.append(max(int(getattr(qos, "depth", 1) or 1), 1))
+        return max(depths) if depths else None
+
     def pointcloud_topic(self, topic: str | None = None) -> str:
         """The PointCloud2 topic to process: `topic` when given (checked), else the one
         with the most messages that is not one of the package's own outputs

@@ -1025,9 +1025,14 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
         node = rclpy.create_node("lidar_obstacles_player", namespace=namespace or None)
         pubs = {}
         for t in infos:
-            qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL
-                             if t.topic == CRS_TOPIC else DurabilityPolicy.VOLATILE)
+            # Transient-local where the recording says its publisher was (the DEM topics: a
+            # DEM consumer subscribes so, and a volatile one offered it nothing), with the
+            # depth it had, so a late joiner gets what it would have got from the node.
+            latched = 1 if t.topic == CRS_TOPIC else reader.latched_depth(t.topic)
+            qos = (QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+                   if latched is None else
+                   QoSProfile(depth=latched, reliability=ReliabilityPolicy.RELIABLE,
+                              durability=DurabilityPolicy.TRANSIENT_LOCAL))
             # Bag topics are absolute names; published relative so `-r __ns:=` style use works.
             pubs[t.topic] = node.create_publisher(_msg_class(t.msgtype), t.topic.lstrip("/"), qos)
         sent = 0
