@@ -694,16 +694,57 @@ def test_save_dem_says_a_write_error_once(ros_node, tmp_path, monkeypatch):
                 (missing, f"cannot write {missing}: folder {missing.parent} does not exist"),
                 (notes, f"{notes} exists and is not a TIFF: not overwriting it")):
             node.cfg = replace(node.cfg, {"export.path": str(path)})
-            res = node._save_dem(Trigger.Request(), Trigger.Response())
-            assert not res.success and res.message == expected
+            assert node._write_dem() == (False, expected)
         assert notes.read_text() == "precious\n"
         # a relative path is the node's working directory's: the answer says which (it was
         # "wrote dem.tif", and where that was depended on how the node had been started)
         monkeypatch.chdir(tmp_path)
         node.cfg = replace(node.cfg, {"export.path": "dem.tif"})
-        res = node._save_dem(Trigger.Request(), Trigger.Response())
-        assert res.success and res.message == f"wrote {tmp_path / 'dem.tif'}"
+        assert node._write_dem() == (True, f"wrote {tmp_path / 'dem.tif'}")
     finally:
+        node.destroy_node()
+
+
+def test_save_dem_leaves_the_executor_free_while_it_writes(ros_node, tmp_path, monkeypatch):
+    # The DEM was made and written on the executor: a big grid held it for seconds (0.66 s
+    # at dem.resolution 0.25), and the parameter services, diagnostics and odometry with it.
+    from lidar_obstacles.config import replace
+    from lidar_obstacles.core.dem import DemGrid
+    from lidar_obstacles.ros.dem_builder import DemBuilderNode
+    from lidar_obstacles.ros.node_base import node_executor
+
+    node = DemBuilderNode()
+    executor = node_executor(DemBuilderNode)  # as run_node makes it
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    grid = DemGrid(np.ones((3, 4), np.float32), np.zeros((3, 4), np.uint8),
+                   np.ones((3, 4), np.uint32), np.array([0.0, 0.0]), 1.0)
+    making = threading.Event()
+
+    def slow_grid():
+        making.set()
+        time.sleep(2.0)
+        return grid
+
+    monkeypatch.setattr(node.stage, "grid", slow_grid)
+    node.cfg = replace(node.cfg, {"export.path": str(tmp_path / "dem.tif")})
+    client = ros_node.create_client(Trigger, "/save_dem")
+    try:
+        assert client.wait_for_service(timeout_sec=20)
+        saved = client.call_async(Trigger.Request())
+        assert _spin_until(ros_node, making.is_set, 20)
+        t0 = time.monotonic()
+        _call(ros_node, GetParameters, "/dem_builder/get_parameters",
+              GetParameters.Request(names=["dem.resolution"]))
+        assert time.monotonic() - t0 < 1.0
+        assert not saved.done()
+        assert _spin_until(ros_node, saved.done, 20)
+        assert saved.result().success, saved.result().message
+        assert (tmp_path / "dem.tif").stat().st_size > 0
+    finally:
+        ros_node.destroy_client(client)
+        executor.shutdown()
         node.destroy_node()
 
 

@@ -22,7 +22,8 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import (Executor, ExternalShutdownException,
+                             MultiThreadedExecutor, SingleThreadedExecutor)
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import (
@@ -512,6 +513,15 @@ def _rcl_name_matches(key: str, full_name: str) -> bool:
     return match(0, 0)
 
 
+def node_executor(factory: Callable[[], Node]) -> Executor:
+    """The executor a node runs on: one thread, unless the node's services wait for its
+    worker thread (`services_wait`, dem_builder's save_dem): then a second thread runs
+    them, in a callback group of their own, while the first serves the rest."""
+    if getattr(factory, "services_wait", False):
+        return MultiThreadedExecutor(num_threads=2)
+    return SingleThreadedExecutor()
+
+
 def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
     """Jazzy-style main: init, spin, and on SIGINT/SIGTERM destroy the node and shut down.
 
@@ -548,7 +558,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
         print(f"{program}: error: {str(exc).split(', at ')[0]}", file=sys.stderr)
         return 2
     node = None
-    executor = SingleThreadedExecutor()  # (after init: it needs the context)
+    executor = node_executor(factory)  # (after init: it needs the context)
     try:
         node = factory()
         executor.add_node(node)
