@@ -2,13 +2,20 @@
 `cloud_simplifier`) with the package's config files.
 
     ros2 launch lidar_obstacles lidar_obstacles.launch.py points:=/lidar/points odom:=/odom \
-        namespace:=uav1
+        namespace:=uav1 large_data:=true
+
+Arguments: points, odom (the input topics), namespace, simplifier, use_sim_time (for bags
+played with --clock), detector_params / dem_params / simplifier_params (params files in
+place of the shipped ones; their sections must reach the nodes under the namespace:
+`/**/obstacle_detector`, as the shipped files are keyed), log_level, and large_data (Fast
+DDS's shipped large-data profile for the nodes: clouds over its default 512 kB
+shared-memory segment go by UDP otherwise; the clouds' publisher needs it too).
 """
 import os
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
+from launch.actions import DeclareLaunchArgument, SetEnvironmentVariable
 from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
@@ -16,10 +23,17 @@ from launch_ros.actions import Node
 
 def generate_launch_description():
     share = get_package_share_directory("lidar_obstacles")
-    points = LaunchConfiguration("points")
-    odom = LaunchConfiguration("odom")
-    namespace = LaunchConfiguration("namespace")
-    remaps = [("points", points), ("odom", odom)]
+    config = os.path.join(share, "config")
+    remaps = [("points", LaunchConfiguration("points")), ("odom", LaunchConfiguration("odom"))]
+    use_sim_time = {"use_sim_time": LaunchConfiguration("use_sim_time")}
+    log_level = ["--log-level", LaunchConfiguration("log_level")]
+
+    def node(executable, params_argument, **kwargs):
+        return Node(package="lidar_obstacles", executable=executable,
+                    namespace=LaunchConfiguration("namespace"),
+                    parameters=[LaunchConfiguration(params_argument), use_sim_time],
+                    remappings=remaps, ros_arguments=log_level, output="screen", **kwargs)
+
     return LaunchDescription([
         DeclareLaunchArgument("points", default_value="points",
                               description="PointCloud2 input topic"),
@@ -29,14 +43,28 @@ def generate_launch_description():
                               description="namespace of the nodes, e.g. uav1"),
         DeclareLaunchArgument("simplifier", default_value="false",
                               description="also start cloud_simplifier (points_simplified)"),
-        Node(package="lidar_obstacles", executable="obstacle_detector", namespace=namespace,
-             parameters=[os.path.join(share, "config", "obstacle_detector.yaml")],
-             remappings=remaps, output="screen"),
-        Node(package="lidar_obstacles", executable="dem_builder", namespace=namespace,
-             parameters=[os.path.join(share, "config", "dem_builder.yaml")],
-             remappings=remaps, output="screen"),
-        Node(package="lidar_obstacles", executable="cloud_simplifier", namespace=namespace,
-             parameters=[os.path.join(share, "config", "cloud_simplifier.yaml")],
-             remappings=remaps, output="screen",
+        DeclareLaunchArgument("use_sim_time", default_value="false",
+                              description="take the time from /clock (a bag played with "
+                                          "--clock)"),
+        DeclareLaunchArgument("detector_params",
+                              default_value=os.path.join(config, "obstacle_detector.yaml"),
+                              description="params file of obstacle_detector"),
+        DeclareLaunchArgument("dem_params",
+                              default_value=os.path.join(config, "dem_builder.yaml"),
+                              description="params file of dem_builder"),
+        DeclareLaunchArgument("simplifier_params",
+                              default_value=os.path.join(config, "cloud_simplifier.yaml"),
+                              description="params file of cloud_simplifier"),
+        DeclareLaunchArgument("log_level", default_value="info",
+                              description="debug, info, warn, error or fatal"),
+        DeclareLaunchArgument("large_data", default_value="false",
+                              description="run the nodes with the shipped Fast DDS "
+                                          "large-data profile (config/fastdds_large_data.xml)"),
+        SetEnvironmentVariable("FASTRTPS_DEFAULT_PROFILES_FILE",
+                               os.path.join(config, "fastdds_large_data.xml"),
+                               condition=IfCondition(LaunchConfiguration("large_data"))),
+        node("obstacle_detector", "detector_params"),
+        node("dem_builder", "dem_params"),
+        node("cloud_simplifier", "simplifier_params",
              condition=IfCondition(LaunchConfiguration("simplifier"))),
     ])

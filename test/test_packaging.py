@@ -103,7 +103,8 @@ def test_colcon_build_and_installed_node_starts(tmp_path):
     assert build.returncode == 0, build.stdout[-3000:] + build.stderr[-3000:]
     share = ws / "install" / "lidar_obstacles" / "share" / "lidar_obstacles"
     for rel in ("package.xml", "config/obstacle_detector.yaml", "config/dem_builder.yaml",
-                "config/cloud_simplifier.yaml", "launch/lidar_obstacles.launch.py"):
+                "config/cloud_simplifier.yaml", "config/fastdds_large_data.xml",
+                "launch/lidar_obstacles.launch.py"):
         assert (share / rel).is_file(), rel
     for name in ("obstacle_detector", "dem_builder", "cloud_simplifier"):  # the contract's
         exe = ws / "install" / "lidar_obstacles" / "lib" / "lidar_obstacles" / name
@@ -142,3 +143,66 @@ def test_colcon_build_and_installed_node_starts(tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_the_launch_file_declares_the_standard_arguments_and_passes_them(monkeypatch):
+    """`launch` is not installed here: the launch file runs against stand-ins that record
+    what it builds. It had no use_sim_time (launch's usual way: a `/**` params file, which
+    the nodes then refused), no params file of the user's, no log level, and no way to
+    the large-data profile the README advises."""
+    import types
+
+    built: dict[str, list] = {"args": [], "nodes": [], "env": []}
+
+    class Recorder:
+        def __init__(self, *args, **kwargs):
+            self.args, self.kwargs = args, kwargs
+
+    class Config(Recorder):
+        def __repr__(self):
+            return f"${self.args[0]}"
+
+    def declare(name, **kwargs):
+        built["args"].append((name, kwargs))
+
+    def node(**kwargs):
+        built["nodes"].append(kwargs)
+
+    def env(name, value, **kwargs):
+        built["env"].append((name, value, kwargs))
+
+    modules = {
+        "ament_index_python": types.ModuleType("ament_index_python"),
+        "ament_index_python.packages": types.SimpleNamespace(
+            get_package_share_directory=lambda pkg: str(REPO)),
+        "launch": types.SimpleNamespace(LaunchDescription=lambda actions: actions),
+        "launch.actions": types.SimpleNamespace(DeclareLaunchArgument=declare,
+                                                SetEnvironmentVariable=env),
+        "launch.conditions": types.SimpleNamespace(IfCondition=Recorder),
+        "launch.substitutions": types.SimpleNamespace(LaunchConfiguration=Config),
+        "launch_ros": types.ModuleType("launch_ros"),
+        "launch_ros.actions": types.SimpleNamespace(Node=node),
+    }
+    for name, module in modules.items():
+        monkeypatch.setitem(sys.modules, name, module)
+    source = (REPO / "launch" / "lidar_obstacles.launch.py").read_text()
+    scope: dict = {}
+    exec(compile(source, "lidar_obstacles.launch.py", "exec"), scope)
+    scope["generate_launch_description"]()
+    args = dict(built["args"])
+    assert {"points", "odom", "namespace", "simplifier", "use_sim_time", "detector_params",
+            "dem_params", "simplifier_params", "log_level", "large_data"} <= set(args)
+    for key in ("detector_params", "dem_params", "simplifier_params"):
+        assert Path(args[key]["default_value"]).is_file(), key  # the shipped files
+    assert [n["executable"] for n in built["nodes"]] == ["obstacle_detector", "dem_builder",
+                                                         "cloud_simplifier"]
+    for n, params in zip(built["nodes"], ("detector_params", "dem_params", "simplifier_params")):
+        assert repr(n["parameters"][0]) == f"${params}"
+        assert repr(n["parameters"][1]["use_sim_time"]) == "$use_sim_time"
+        assert repr(n["namespace"]) == "$namespace"
+        remaps = [(a, repr(b)) for a, b in n["remappings"]]
+        assert remaps == [("points", "$points"), ("odom", "$odom")]
+        assert n["ros_arguments"][0] == "--log-level"
+    (name, value, kwargs), = built["env"]
+    assert name == "FASTRTPS_DEFAULT_PROFILES_FILE" and Path(value).is_file()
+    assert repr(kwargs["condition"].args[0]) == "$large_data"
