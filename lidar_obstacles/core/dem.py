@@ -25,7 +25,8 @@ from lidar_obstacles.config import DemBuilderConfig, KrigingConfig, ThinningConf
 from lidar_obstacles.core.arrays import (all_columns, column_max, column_min, tree_query,
                                          unique_ints)
 from lidar_obstacles.core.interpolate import (Variogram, degeneracy, interpolate,
-                                              kriging_variogram, merge_coincident)
+                                              kriging_variogram, merge_coincident,
+                                              neighbour_residual)
 from lidar_obstacles.errors import CloudFormatError, ConfigError
 
 
@@ -61,20 +62,11 @@ class DemGrid:
 
     def sample(self, xy: np.ndarray) -> np.ndarray:
         """(M,) float64 bilinear elevation at xy (M, 2) metres between cell centres; NaN
-        outside the grid or next to an unknown cell."""
-        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        rows, cols = self.shape
-        f = (xy - self.origin) / self.resolution - 0.5
-        c0 = np.floor(f).astype(np.int64)
-        t = f - c0
-        out = np.full(len(xy), np.nan)
-        ok = (c0[:, 0] >= 0) & (c0[:, 0] < cols - 1) & (c0[:, 1] >= 0) & (c0[:, 1] < rows - 1)
-        if rows >= 2 and cols >= 2 and ok.any():
-            cx, cy, tx, ty = c0[ok, 0], c0[ok, 1], t[ok, 0], t[ok, 1]
-            e = self.elevation.astype(np.float64)
-            out[ok] = ((1 - tx) * (1 - ty) * e[cy, cx] + tx * (1 - ty) * e[cy, cx + 1]
-                       + (1 - tx) * ty * e[cy + 1, cx] + tx * ty * e[cy + 1, cx + 1])
-        return out
+        outside the cell centres' hull or next to an unknown cell (`grid_values_at`)."""
+        from lidar_obstacles.core.metrics import grid_values_at
+
+        return grid_values_at(self.elevation, np.asarray(xy, np.float64).reshape(-1, 2),
+                              resolution=self.resolution, origin=tuple(self.origin))
 
 
 def empty_grid(resolution: float, reason: str) -> DemGrid:
@@ -85,16 +77,14 @@ def empty_grid(resolution: float, reason: str) -> DemGrid:
 
 def accuracy(predicted: np.ndarray, truth: np.ndarray) -> tuple[float, float, int]:
     """(RMSE metres, R^2, n used) over the finite pairs of predicted and true elevations,
-    two arrays of the same shape (any), metres."""
-    p = np.asarray(predicted, dtype=np.float64)
-    t = np.asarray(truth, dtype=np.float64)
-    ok = np.isfinite(p) & np.isfinite(t)
-    if not ok.any():
-        return float("nan"), float("nan"), 0
-    err = p[ok] - t[ok]
-    var = float(np.sum((t[ok] - t[ok].mean()) ** 2))
-    r2 = 1.0 - float(np.sum(err ** 2)) / var if var > 0 else float("nan")
-    return float(np.sqrt(np.mean(err ** 2))), r2, int(ok.sum())
+    two arrays of the same shape (any), metres (NaN when none, R^2 too when the truth is
+    constant): `grid_errors`' figures."""
+    from lidar_obstacles.core.metrics import grid_errors
+
+    e = grid_errors(np.asarray(truth, np.float64), np.asarray(predicted, np.float64))
+    nan = float("nan")
+    return (nan if e["rmse_m"] is None else e["rmse_m"],
+            nan if e["r2"] is None else e["r2"], e["n"])
 
 
 # --------------------------------------------------------------------------- thinning
@@ -120,15 +110,7 @@ def tin_curvature(xyz: np.ndarray) -> np.ndarray:
         tri = Delaunay(xyz[:, :2] - xyz[:, :2].mean(axis=0))  # centred: conditioning
     except QhullError:
         return np.zeros(n)
-    indptr, nbrs = tri.vertex_neighbor_vertices
-    owner = np.repeat(np.arange(n), np.diff(indptr))
-    w = 1.0 / np.maximum(np.hypot(*(xyz[owner, :2] - xyz[nbrs, :2]).T), 1e-9)
-    wsum = np.bincount(owner, weights=w, minlength=n)
-    pred = np.bincount(owner, weights=w * xyz[nbrs, 2], minlength=n)
-    out = np.zeros(n)
-    has = wsum > 0
-    out[has] = np.abs(xyz[has, 2] - pred[has] / wsum[has])
-    return out
+    return neighbour_residual(xyz, *tri.vertex_neighbor_vertices)
 
 
 def thin(xyz: np.ndarray, *, cfg: ThinningConfig,

@@ -45,7 +45,7 @@ _CHUNK = 4096  # local systems solved per stacked call: bounds memory to a few M
 
 @lru_cache(maxsize=1)
 def _threadpools():
-    from threadpoolctl import ThreadpoolController  # comes with scikit-learn
+    from threadpoolctl import ThreadpoolController
 
     return ThreadpoolController()
 
@@ -64,6 +64,22 @@ def one_blas_thread() -> ContextManager:
     if all(lib.num_threads == 1 for lib in blas.lib_controllers):
         return contextlib.nullcontext()
     return blas.limit(limits=1)
+
+
+def neighbour_residual(xyz: np.ndarray, indptr: np.ndarray, neighbours: np.ndarray
+                       ) -> np.ndarray:
+    """(N,) float64 |z - the inverse-distance mean of the neighbours' z| (m) of (N, 3)
+    points, their neighbours given as a Delaunay's `vertex_neighbor_vertices` (indptr
+    (N + 1,), neighbours): a discrete Laplacian, 0 on any plane; 0 for a point with none."""
+    n = len(xyz)
+    owner = np.repeat(np.arange(n), np.diff(indptr))
+    w = 1.0 / np.maximum(np.hypot(*(xyz[owner, :2] - xyz[neighbours, :2]).T), 1e-9)
+    wsum = np.bincount(owner, weights=w, minlength=n)
+    pred = np.bincount(owner, weights=w * xyz[neighbours, 2], minlength=n)
+    out = np.zeros(n)
+    has = wsum > 0
+    out[has] = np.abs(xyz[has, 2] - pred[has] / wsum[has])
+    return out
 
 
 def _check(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray) -> tuple[np.ndarray, ...]:

@@ -31,7 +31,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from lidar_obstacles.config import KmeansConfig
 from lidar_obstacles.core.arrays import points_xyz, tree_query
-from lidar_obstacles.core.interpolate import idw, tin
+from lidar_obstacles.core.interpolate import idw, neighbour_residual, tin
 from lidar_obstacles.errors import CloudFormatError
 
 log = logging.getLogger(__name__)
@@ -311,14 +311,7 @@ def tin_outlier_filter(xyz: np.ndarray, *, threshold: float, max_rounds: int) ->
         except (QhullError, ValueError):
             break
         indptr, nbrs = tri.vertex_neighbor_vertices
-        owner = np.repeat(np.arange(len(idx)), np.diff(indptr))
-        d = np.hypot(*(pts[owner, :2] - pts[nbrs, :2]).T)
-        w = 1.0 / np.maximum(d, 1e-9)
-        wsum = np.bincount(owner, weights=w, minlength=len(idx))
-        pred = np.bincount(owner, weights=w * pts[nbrs, 2], minlength=len(idx))
-        has = wsum > 0
-        resid = np.zeros(len(idx))
-        resid[has] = np.abs(pts[has, 2] - pred[has] / wsum[has])
+        resid = neighbour_residual(pts, indptr, nbrs)
         # largest neighbour residual per point: owners are sorted, so one reduceat
         counts = np.diff(indptr)
         nb_max = np.zeros(len(idx))
