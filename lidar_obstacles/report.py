@@ -21,6 +21,7 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
+from lidar_obstacles.core.classes import CLASS_HEX
 from lidar_obstacles.core.metrics import jsonable, latency_stats
 from lidar_obstacles.errors import CloudFormatError, LidarObstaclesError
 from lidar_obstacles.io.atomic import HTML, JSON, PNG, atomic_write, atomic_write_text
@@ -30,18 +31,18 @@ DPI = 150
 
 CLASS_STYLE: dict[int, tuple[str, str]] = {
     0: ("object / never classified", "#7d6b8c"),
-    1: ("unclassified", "#5b6b7d"),
-    2: ("ground", "#a0522d"),
-    3: ("low vegetation", "#b5d96a"),
-    4: ("medium vegetation", "#5fae3c"),
-    5: ("high vegetation", "#1e6b2a"),
-    6: ("building", "#e8541e"),
-    7: ("noise", "#a8a8a8"),
+    1: ("unclassified", CLASS_HEX[1]),
+    2: ("ground", CLASS_HEX[2]),
+    3: ("low vegetation", CLASS_HEX[3]),
+    4: ("medium vegetation", CLASS_HEX[4]),
+    5: ("high vegetation", CLASS_HEX[5]),
+    6: ("building", CLASS_HEX[6]),
+    7: ("noise", CLASS_HEX[7]),
     8: ("model key-point", "#c8966a"),
     9: ("water", "#3b6fd1"),
     11: ("road surface", "#6e4a32"),
-    14: ("wire conductor", "#00c8e0"),
-    15: ("transmission tower", "#e000e0"),
+    14: ("wire conductor", CLASS_HEX[14]),
+    15: ("transmission tower", CLASS_HEX[15]),
     26: ("crane (user 26)", "#ffa000"),
 }
 """ASPRS code -> (name, colour) used in every class picture; other codes are dark grey."""

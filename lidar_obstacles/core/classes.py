@@ -22,14 +22,17 @@ CLASS_NAMES: dict[int, str] = {
     BUILDING: "building", NOISE: "noise", WIRE: "wire", TOWER: "tower",
 }
 
-# RGB in 0..1 of the markers, the report's palette (report.CLASS_STYLE): brown ground, greens,
-# red buildings, cyan wires, magenta towers.
-CLASS_COLOURS: dict[int, tuple[float, float, float]] = {
-    UNCLASSIFIED: (0.6, 0.6, 0.6), GROUND: (0.55, 0.4, 0.25), LOW_VEGETATION: (0.6, 0.85, 0.4),
-    MEDIUM_VEGETATION: (0.3, 0.7, 0.2), HIGH_VEGETATION: (0.05, 0.45, 0.1),
-    BUILDING: (0.85, 0.2, 0.15), NOISE: (0.3, 0.3, 0.3), WIRE: (0.0, 0.78, 0.88),
-    TOWER: (0.85, 0.1, 0.85),
+# The classes' colours in the markers and in every picture of the report (the usual ASPRS
+# viewer scheme: brown ground, greens, orange-red buildings, cyan wires, magenta towers).
+CLASS_HEX: dict[int, str] = {
+    UNCLASSIFIED: "#5b6b7d", GROUND: "#a0522d", LOW_VEGETATION: "#b5d96a",
+    MEDIUM_VEGETATION: "#5fae3c", HIGH_VEGETATION: "#1e6b2a", BUILDING: "#e8541e",
+    NOISE: "#a8a8a8", WIRE: "#00c8e0", TOWER: "#e000e0",
 }
+# ... as RGB in 0..1 (std_msgs/ColorRGBA's)
+CLASS_COLOURS: dict[int, tuple[float, float, float]] = {
+    code: tuple(int(h[i:i + 2], 16) / 255.0 for i in (1, 3, 5))  # type: ignore[misc]
+    for code, h in CLASS_HEX.items()}
 
 
 def vegetation_class(height_above_ground: np.ndarray | float) -> np.ndarray:
