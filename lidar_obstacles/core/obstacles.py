@@ -503,8 +503,9 @@ def _voxel_centroids(xyz: np.ndarray, lo: np.ndarray, edge: float
 
 
 def voxel_components(xyz: np.ndarray, size: float) -> np.ndarray:
-    """(M,) int labels: connected components of occupied voxels (26-neighbourhood),
-    numbered in the order of their first voxel (x, then y, then z). On a dense grid of the
+    """(M,) int labels of (M, 3) points xyz (m): connected components of the occupied
+    voxels of edge `size` m (26-neighbourhood), numbered in the order of their first voxel
+    (x, then y, then z). On a dense grid of the
     voxels' box (2-5 x faster: a forest strip's 45 000 points 2-3 ms instead of 4-13 ms),
     or, for a box of more than DENSE_GRID_CELLS, on a graph of the occupied voxels."""
     m = len(xyz)
@@ -1644,8 +1645,10 @@ def _objects(xyz: np.ndarray, hag: np.ndarray, classes: np.ndarray,
 def clearance_grid(xyz: np.ndarray, classes: np.ndarray, height_above_ground: np.ndarray, *,
                    center_xy: np.ndarray, cfg: ClearanceConfig
                    ) -> tuple[np.ndarray, np.ndarray, float]:
-    """Occupancy grid around center_xy: per cell the tallest obstacle above ground scaled to
-    0..100 (cfg.max_height -> 100); -1 where no point fell; 0 where only ground/low points.
+    """Occupancy grid around center_xy (2,) m: per cell the tallest obstacle above ground
+    scaled to 0..100 (cfg.max_height -> 100); -1 where no point fell; 0 where only
+    ground/low points. xyz (N, 3) m, classes (N,) ASPRS codes, height_above_ground (N,) m
+    (NaN taken as 0).
 
     Returns (cells (rows, cols) int8, row = y index; origin (2,) lower-left corner, m;
     resolution m)."""
