@@ -45,7 +45,6 @@ class RecentObjects:
                  voxel: float | None = None) -> None:
         self.rows = np.zeros((0, width))
         self.stamps = np.zeros(0)
-        self.cells = np.zeros((0, 3), np.int64)  # with `voxel`: each row's voxel
         self.seconds, self.size, self.radius, self.voxel = seconds, size, radius, voxel
 
     def near(self, lo: np.ndarray, hi: np.ndarray, stamp: float) -> np.ndarray:
@@ -57,22 +56,17 @@ class RecentObjects:
 
     def add(self, rows: np.ndarray, stamp: float) -> None:
         """Remember (R, width) rows of the message stamped `stamp` s; forget the old."""
-        stamps = np.full(len(rows), float(stamp))
-        cells = self.cells[:0]
         old = np.ones(len(self.rows), bool)
         if self.voxel is not None and len(rows):
-            rows, cells, old = self._merged(rows)
-            stamps = stamps[:len(rows)]
+            rows, old = self._merged(rows)
         all_rows = np.concatenate([rows, self.rows[old]])
-        all_stamps = np.concatenate([stamps, self.stamps[old]])
+        all_stamps = np.concatenate([np.full(len(rows), float(stamp)), self.stamps[old]])
         keep = np.flatnonzero(all_stamps >= stamp - self.seconds)[:self.size]
         self.rows, self.stamps = all_rows[keep], all_stamps[keep]
-        if self.voxel is not None:
-            self.cells = np.concatenate([cells, self.cells[old]])[keep]
 
-    def _merged(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(R', width) the new rows one per voxel, (R', 3) their voxels, and (K,) bool: the
-        old rows to keep (those in no voxel of the new ones, whose flags the new take)."""
+    def _merged(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(R', width) the new rows one per voxel, and (K,) bool: the old rows to keep
+        (those in no voxel of the new ones, whose flags the new take)."""
         cells = np.floor(rows[:, :3] / self.voxel).astype(np.int64)
         lo, hi = column_min(cells), column_max(cells)
         span = hi - lo + 1  # numbered within the new rows' box: exact, however far out
@@ -81,20 +75,25 @@ class RecentObjects:
         key, first, group = np.unique(new_key, return_index=True, return_inverse=True)
         flag = np.full(len(key), -np.inf)
         np.maximum.at(flag, group, rows[:, -1])
-        rows, cells = rows[first], cells[first]
+        rows = rows[first]
         old = np.ones(len(self.rows), bool)
-        inside = np.flatnonzero(all_columns((self.cells >= lo) & (self.cells <= hi)))
+        # the old rows in the new rows' voxels: those in their box (with a voxel to spare
+        # for the rounding), then by their voxels, as the new rows' were found
+        near = np.flatnonzero(all_columns(
+            (self.rows[:, :3] >= (lo - 1) * self.voxel)
+            & (self.rows[:, :3] < (hi + 2) * self.voxel)))
+        c = np.floor(self.rows[near, :3] / self.voxel).astype(np.int64)
+        within = all_columns((c >= lo) & (c <= hi))
+        inside, c = near[within], c[within] - lo
         if len(inside):
-            c = self.cells[inside] - lo
             old_key = (c[:, 0] * span[1] + c[:, 1]) * span[2] + c[:, 2]
             at = np.searchsorted(key, old_key)
             same = at < len(key)
             same[same] = key[at[same]] == old_key[same]
             np.maximum.at(flag, at[same], self.rows[inside[same], -1])
             old[inside[same]] = False
-        rows = rows.copy()
-        rows[:, -1] = flag
-        return rows, cells, old
+        rows[:, -1] = flag  # (rows[first] is a copy)
+        return rows, old
 
 
 # A strip that catches only a tower's legs still knows it: x, y, radius and height (m) of
