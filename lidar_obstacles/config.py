@@ -378,11 +378,15 @@ class SimplifyConfig:
 @dataclass(frozen=True)
 class DemConfig:
     ground_source: str = param("detector", "where the DEM's ground comes from: `kmeans` "
-                               "(intensity K-means + TIN outlier checks) or `detector` "
+                               "(intensity K-means + TIN outlier checks), `detector` "
                                "(the obstacle detector's ground filter; the default: "
                                "~25 ms per 50k-point message in `bench_pipeline.py`, "
-                               "against 1-2 s for kmeans)",
-                               choices=("kmeans", "detector"))
+                               "against 1-2 s for kmeans), or `input`: the input is "
+                               "obstacle_detector's `ground` already (remap points:=ground; "
+                               "its class 2 points with their height_above_ground), so a "
+                               "UAV running both nodes filters each cloud once; `replay` "
+                               "hands the detector's ground over for it",
+                               choices=("kmeans", "detector", "input"))
     ground_band: float = param(0.15, "with the `detector` source, ground points more than "
                                "this above the detector's ground surface are left out of the "
                                "DEM: its acceptance band (0.5 m and more on slopes) keeps low "

@@ -113,7 +113,10 @@ def _param(name: str, value) -> Parameter:
     return Parameter(name=name, value=v)
 
 
-def test_nodes_process_a_played_flight(flight, ros_node, tmp_path):
+@pytest.mark.parametrize("dem_input", [[], ["-r", "points:=ground",
+                                             "-p", "dem.ground_source:=input"]],
+                         ids=["dem_filters_itself", "dem_from_the_detectors_ground"])
+def test_nodes_process_a_played_flight(flight, ros_node, tmp_path, dem_input):
     got: dict[str, list] = {k: [] for k in ("obstacles", "ground", "markers", "clearance",
                                             "dem", "dem_info", "diag")}
     rel = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
@@ -132,7 +135,7 @@ def test_nodes_process_a_played_flight(flight, ros_node, tmp_path):
     # and drops what it cannot keep up with; how many depends on the machine's load).
     det = _start("lidar_obstacles.scripts.obstacle_detector", "-p", "input.depth:=30")
     dem = _start("lidar_obstacles.scripts.dem_builder", "-p", "dem.publish_rate:=2.0",
-                 "-p", f"export.path:={tmp_path / 'live_dem.tif'}")
+                 "-p", f"export.path:={tmp_path / 'live_dem.tif'}", *dem_input)
     try:
         # Wait until both nodes are up (their diagnostics arrive), then play. Their statuses
         # are named with the namespace: two vehicles share the global /diagnostics.

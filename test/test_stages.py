@@ -154,3 +154,35 @@ def test_output_clouds_are_aligned_with_zeros_between_fields():
             for f in msg.fields:
                 spans[f.offset:f.offset + (1 if f.datatype in (1, 2) else 4)] = True
             assert used < msg.point_step and not raw[:, ~spans].any(), name
+
+
+def test_a_dem_from_the_detectors_ground_topic_is_the_dem_it_would_find():
+    """`dem.ground_source: input` takes obstacle_detector's `ground` (remapped to its
+    `points`) and does not filter the cloud again: the same DEM as `detector` on the raw
+    clouds, at a fraction of the cost. A cloud without height_above_ground is refused (a
+    raw cloud would put every crown and roof into the DEM); of one with obstacles in it,
+    only the ground (class 2) is taken."""
+    from lidar_obstacles.config import DemBuilderConfig
+    from lidar_obstacles.core.simulate import SimSettings, simulate_flight
+    from lidar_obstacles.errors import CloudFormatError
+    from lidar_obstacles.ros.stages import DemStage
+
+    detector = DetectorStage(ObstacleDetectorConfig())
+    own = DemStage(DemBuilderConfig())
+    taken = DemStage(replace(DemBuilderConfig(), {"dem.ground_source": "input"}))
+    mixed = DemStage(replace(DemBuilderConfig(), {"dem.ground_source": "input"}))
+    for frame in simulate_flight(SimSettings(scene="mixed", seed=2, duration=0.5)):
+        msg = messages.cloud(frame.points, messages.header(int(frame.stamp * 1e9) + 1, "map"))
+        own.process(msg)
+        outputs = dict(detector.finish(detector.start(msg))[0])
+        taken.process(outputs["ground"])
+        both = np.concatenate([read_points(outputs["ground"]), read_points(outputs["obstacles"])])
+        mixed.process(messages.cloud(both, messages.header(int(frame.stamp * 1e9) + 1, "map")))
+    a, b, c = own.grid(), taken.grid(), mixed.grid()
+    assert a.elevation.size > 100
+    assert np.array_equal(a.elevation, b.elevation, equal_nan=True)
+    assert np.array_equal(a.elevation, c.elevation, equal_nan=True)
+    with pytest.raises(CloudFormatError, match="no height_above_ground field"):
+        taken.process(msg)
+    assert taken.shares_ground_with(ObstacleDetectorConfig(tiling=replace(
+        ObstacleDetectorConfig().tiling, {"size": 33.0})))

@@ -15,7 +15,7 @@ import numpy as np
 from lidar_obstacles.config import (CloudSimplifierConfig, DemBuilderConfig, NodeInputConfig,
                                     ObstacleDetectorConfig, PointsNodeConfig)
 from lidar_obstacles.core.arrays import all_columns
-from lidar_obstacles.core.classes import NOISE
+from lidar_obstacles.core.classes import GROUND, NOISE
 from lidar_obstacles.core.pipeline import (DemPipeline, GroundStep, ObstacleDetector,
                                            ObstacleResult)
 from lidar_obstacles.errors import CloudFormatError
@@ -310,9 +310,12 @@ class DemStage:
 
     def shares_ground_with(self, detector_cfg: ObstacleDetectorConfig) -> bool:
         """True when the detector's ground of a message is the ground this stage would
-        find: `dem.ground_source: detector` with the same filter, frame and input limits.
-        `replay` then hands it over instead of filtering every cloud twice."""
+        find: `dem.ground_source: detector` with the same filter, frame and input limits,
+        or `input` (the detector's ground is what it takes). `replay` then hands it over
+        instead of filtering every cloud twice."""
         d, c = detector_cfg, self.cfg
+        if c.dem.ground_source == "input":  # (the detector's ground is its input by name)
+            return True
         return (c.dem.ground_source == "detector" and c.use_odometry == d.use_odometry
                 and c.input.max_points == d.input.max_points
                 and (c.tiling, c.ground, c.tin, c.ransac, c.context)
@@ -326,9 +329,22 @@ class DemStage:
                        pose=pose, transform=cfg.use_odometry)
         self.frame_id = prep.frame_id
         self.last_stamp_ns = prep.stamp_ns
-        timings = self.pipeline.process(prep.xyz, stamp=prep.stamp_ns * 1e-9,
-                                        vehicle_xyz=pose.position if pose is not None else None,
-                                        intensity=_attr(prep.points, "intensity"))
+        vehicle = pose.position if pose is not None else None
+        if cfg.dem.ground_source == "input":
+            hag = _attr(prep.points, "height_above_ground")
+            if hag is None:  # (a raw cloud would all go into the DEM, crowns and roofs)
+                raise CloudFormatError("no height_above_ground field: dem.ground_source: "
+                                       "input takes obstacle_detector's ground (remap "
+                                       "points:=ground)")
+            classes = _attr(prep.points, "class")
+            ground = slice(None) if classes is None else classes == GROUND
+            timings = self.pipeline.add_ground(prep.xyz[ground], stamp=prep.stamp_ns * 1e-9,
+                                               vehicle_xyz=vehicle,
+                                               height_above_ground=hag[ground])
+        else:
+            timings = self.pipeline.process(prep.xyz, stamp=prep.stamp_ns * 1e-9,
+                                            vehicle_xyz=vehicle,
+                                            intensity=_attr(prep.points, "intensity"))
         return {"points_in": len(prep.points), "points_out": self.pipeline.last_added,
                 "timings": timings, "seconds": time.perf_counter() - t0}
 
