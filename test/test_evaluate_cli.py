@@ -146,13 +146,13 @@ def test_evaluate_skips_and_counts_a_malformed_cloud(tmp_path, caplog, capsys):
     assert m["reject_reasons"] == {"data has N bytes, expected row_step N * height N = N": 1}
     (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert warning.startswith("evaluate: skipped 1 malformed of the 5 clouds on /points, "
-                              "the first cloud 3 (stamp 0.200000000 s): data has ")
+                              "the first cloud 3 (stamp 1767225600.200000000 s): data has ")
     _cut_short(tmp_path / "f", tmp_path / "all", set(range(5)))
     capsys.readouterr()
     assert main(["evaluate", str(tmp_path / "all"), "--no-dem"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("lidar-obstacles evaluate: error: none of the 5 clouds on /points "
-                          "can be evaluated: 5 malformed, the first cloud 1 (stamp 0.0")
+                          "can be evaluated: 5 malformed, the first cloud 1 (stamp 1767225600.0")
     assert len(err.strip().splitlines()) == 1
 
 

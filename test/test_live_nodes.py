@@ -113,9 +113,9 @@ def _param(name: str, value) -> Parameter:
     return Parameter(name=name, value=v)
 
 
-@pytest.mark.parametrize("dem_input", [[], ["-r", "points:=ground",
-                                             "-p", "dem.ground_source:=input"]],
-                         ids=["dem_filters_itself", "dem_from_the_detectors_ground"])
+@pytest.mark.parametrize(
+    "dem_input", [[], ["-r", "points:=ground", "-p", "dem.ground_source:=input"]],
+    ids=["dem_filters_itself", "dem_from_the_detectors_ground"])
 def test_nodes_process_a_played_flight(flight, ros_node, tmp_path, dem_input):
     got: dict[str, list] = {k: [] for k in ("obstacles", "ground", "markers", "clearance",
                                             "dem", "dem_info", "diag")}

@@ -300,7 +300,8 @@ def test_replay_writes_each_nodes_diagnostics_on_the_bags_clock(sim_bag, tmp_pat
     assert set(diag) == {"obstacle_detector: processing", "dem_builder: processing"}
     obstacle_points = sum(len(c) for c in clouds(tmp_path / "out", "/obstacles"))
     for name, seen in diag.items():
-        assert [stamp for stamp, _, _ in seen] == [1_000_000_000, 1_900_000_000]  # 1 s, end
+        since = [stamp - offline.SIM_EPOCH_NS for stamp, _, _ in seen]
+        assert since == [1_000_000_000, 1_900_000_000]  # 1 s, end
         stamp, level, last = seen[-1]
         # WARN at 1 s, the two clouds dropped since the start; OK at the end, none since
         assert [lvl for _, lvl, _ in seen] == [1, 0]

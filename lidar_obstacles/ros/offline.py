@@ -69,6 +69,12 @@ def _progress(iterable: Iterable, total: int | None, desc: str, unit: str = "msg
 # --------------------------------------------------------------------------- simulate
 
 
+# A simulated flight's first cloud is stamped 2026-01-01 00:00:00 UTC, not 0: ROS reads a
+# stamp of 0 as "unset" (tf2's "latest"), and a bag played with --clock at 0 leaves the
+# nodes' ROS time not started.
+SIM_EPOCH_NS = 1_767_225_600 * 10**9
+
+
 def simulate(out: Path, *, scene: str, seed: int, duration: float, frame: str,
              rate: float = 10.0, points_per_frame: int = 50_000,
              storage: str = "mcap") -> dict:
@@ -78,13 +84,13 @@ def simulate(out: Path, *, scene: str, seed: int, duration: float, frame: str,
     settings = SimSettings(scene=scene, seed=seed, duration=duration, rate=rate,
                            points_per_frame=points_per_frame, frame=frame)
     cloud_frame = "map" if frame == "map" else "lidar"
-    n_frames = int(np.ceil(duration * rate - 1e-9))  # frame k is stamped k / rate
+    n_frames = int(np.ceil(duration * rate - 1e-9))  # frame k is stamped SIM_EPOCH + k / rate
     total = 0
     with BagWriter(out, storage=storage) as bag:
         bag.add_topic("/points", POINTCLOUD2)
         bag.add_topic("/odom", ODOMETRY)
         for f in _progress(simulate_flight(settings), n_frames, "simulate"):
-            stamp_ns = int(round(f.stamp * 1e9))
+            stamp_ns = SIM_EPOCH_NS + int(round(f.stamp * 1e9))
             # Odometry twist is in the child frame; the simulator gives it in the map frame.
             rot = Pose(stamp_ns, f.position, f.orientation, "map").rotation()
             # REP-105: the pose of the body ("lidar", the clouds' frame in sensor mode) in
