@@ -5,7 +5,8 @@
 - live latency: the `obstacle_detector` executable as a subprocess; 50k-point clouds published
   at 10 Hz; time from publishing a cloud to receiving its `obstacles` (target p95 <= 100 ms);
   with Fast DDS's default transports, and with the shipped large-data profile
-  (config/fastdds_large_data.xml) in every process, as the README advises for such clouds.
+  (config/fastdds_large_data.xml) in every process, as the README advises for such clouds;
+  and beside `dem_builder`, filtering the clouds itself or taking the detector's `ground`.
 - DEM update: `dem_builder`'s pipeline on the same clouds, per message (ground filter and
   binning; target p95 <= 50 ms), and per publish (gaps filled at `dem.publish_rate`).
 - memory: a long simulated flight through both stages in one process; resident memory after
@@ -94,11 +95,12 @@ def bench_dem_updates(seconds: float) -> dict:
 
 
 def bench_live_latency(seconds: float, out: Path, with_dem_builder: bool = False,
-                       scene: str = "mixed") -> dict:
+                       scene: str = "mixed", dem_from_ground: bool = False) -> dict:
     """Publish -> `obstacles` latency of the obstacle_detector executable on a simulated
     `scene`; with `with_dem_builder`, the dem_builder executable runs beside it on the same
-    clouds, as on a UAV running both (they share the cores). A node that does not stop
-    leaves its log in `out`."""
+    clouds, as on a UAV running both (they share the cores), taking the detector's
+    `ground` instead (`dem.ground_source: input`) with `dem_from_ground`. A node that does
+    not stop leaves its log in `out`."""
     import rclpy
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
@@ -113,14 +115,18 @@ def bench_live_latency(seconds: float, out: Path, with_dem_builder: bool = False
 
     logs = tempfile.TemporaryDirectory()
 
-    def start(name: str) -> subprocess.Popen:
+    def start(name: str, *ros_args: str) -> subprocess.Popen:
         exe = Path(sys.executable).parent / name
         cmd = ([str(exe)] if exe.exists()
                else [sys.executable, "-m", f"lidar_obstacles.scripts.{name}"])
+        cmd += ["--ros-args", *ros_args] if ros_args else []
         with open(Path(logs.name) / f"{name}.log", "w") as log:
             return subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
 
-    procs = [start("obstacle_detector")] + ([start("dem_builder")] if with_dem_builder else [])
+    dem_args = ("-r", "points:=ground", "-p", "dem.ground_source:=input") \
+        if dem_from_ground else ()
+    procs = [start("obstacle_detector")] + ([start("dem_builder", *dem_args)]
+                                            if with_dem_builder else [])
     rclpy.init()
     node = rclpy.create_node("latency_bench")
     qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
@@ -148,7 +154,8 @@ def bench_live_latency(seconds: float, out: Path, with_dem_builder: bool = False
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
     try:
         deadline = time.monotonic() + 60
-        while pub.get_subscription_count() < len(procs) and time.monotonic() < deadline:
+        on_points = 1 if dem_from_ground else len(procs)  # (that dem_builder takes `ground`)
+        while pub.get_subscription_count() < on_points and time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=0.1)
         time.sleep(2.0)  # the node switches its subscription to reliable within 1 s
         msgs = [messages.cloud(f.points, messages.header(int(f.stamp * 1e9) + 1, "map"))
@@ -297,6 +304,8 @@ def main() -> None:
            "live_latency": live_latency(live, args.out),
            "live_latency_large_data": live_latency(live, args.out, large_data=True),
            "live_latency_with_dem_builder": live_latency(live, args.out, with_dem_builder=True),
+           "live_latency_with_dem_builder_from_ground": live_latency(
+               live, args.out, with_dem_builder=True, dem_from_ground=True),
            "live_latency_forest": live_latency(live, args.out, scene="forest"),
            "live_latency_forest_large_data": live_latency(live, args.out, scene="forest",
                                                           large_data=True),
@@ -310,6 +319,8 @@ def main() -> None:
          "<= 100"),
         ("live obstacles latency p95 with dem_builder running beside it, ms",
          res["live_latency_with_dem_builder"]["p95_ms"], "-"),
+        ("  the same, dem_builder taking the detector's ground (dem.ground_source: input), ms",
+         res["live_latency_with_dem_builder_from_ground"]["p95_ms"], "-"),
         ("live obstacles latency p50 / p95 over the forest scene, ms",
          _p50_p95(res["live_latency_forest"]), "-"),
         ("  the same with the large-data profile, ms",
