@@ -238,6 +238,21 @@ def atomic_write_text(path: str | Path, text: str, *, kind: Kind | None) -> Path
     return atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"), kind=kind)
 
 
+def swap_in(new: Path, path: Path, old: Path) -> None:
+    """Rename the finished output `new` to `path`. An existing `path` (a folder or a file)
+    is renamed to `old` first and removed after: between the two renames a kill leaves it
+    there, where `remove_stale_partials` finds it (the name must be ``.NAME.old-PID...``)."""
+    if not os.path.lexists(path):
+        os.replace(new, path)
+        return
+    os.replace(path, old)
+    os.replace(new, path)
+    if old.is_dir() and not old.is_symlink():
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        old.unlink(missing_ok=True)
+
+
 def atomic_folder(path: str | Path, write: Callable[[Path], None]) -> Path:
     """Call ``write(tmp)`` on a new temporary folder beside ``path``, give the folder the
     mode mkdir would (0o777 minus the umask; mkdtemp's is 0o700) and rename it to
@@ -251,14 +266,8 @@ def atomic_folder(path: str | Path, write: Callable[[Path], None]) -> Path:
     try:
         write(tmp)
         os.chmod(tmp, 0o777 & ~umask())
-        if path.exists():
-            head = f".{path.name}.partial-"
-            old = tmp.with_name(f".{path.name}.old-{tmp.name.removeprefix(head)}")
-            os.replace(path, old)
-            os.replace(tmp, path)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, path)
+        head = f".{path.name}.partial-"
+        swap_in(tmp, path, tmp.with_name(f".{path.name}.old-{tmp.name.removeprefix(head)}"))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)  # (gone once renamed)
     return path

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 from lidar_obstacles.errors import BagError
-from lidar_obstacles.io.atomic import partial_prefix, remove_stale_partials
+from lidar_obstacles.io.atomic import partial_prefix, remove_stale_partials, swap_in
 
 if TYPE_CHECKING:  # rosbags is imported on first use
     from rosbags.typesys.store import Typestore
@@ -281,13 +281,7 @@ class BagWriter:
             return
         # Name the storage file after the final folder, as ros2 bag does.
         self._rename_storage_file()
-        if self.path.exists():
-            old = self.path.with_name(f".{self.path.name}.old-{os.getpid()}")
-            os.replace(self.path, old)
-            os.replace(self._tmp, self.path)
-            shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()
-        else:
-            os.replace(self._tmp, self.path)
+        swap_in(self._tmp, self.path, self.path.with_name(f".{self.path.name}.old-{os.getpid()}"))
 
     def _rename_storage_file(self) -> None:
         meta = self._tmp / "metadata.yaml"
