@@ -34,32 +34,24 @@ def generate_launch_description():
                     parameters=[LaunchConfiguration(params_argument), use_sim_time],
                     remappings=remaps, ros_arguments=log_level, output="screen", **kwargs)
 
+    arguments = [
+        ("points", "points", "PointCloud2 input topic"),
+        ("odom", "odom", "nav_msgs/Odometry of the vehicle"),
+        ("namespace", "", "namespace of the nodes, e.g. uav1"),
+        ("simplifier", "false", "also start cloud_simplifier (points_simplified)"),
+        ("use_sim_time", "false", "take the time from /clock (a bag played with --clock)"),
+        ("detector_params", os.path.join(config, "obstacle_detector.yaml"),
+         "params file of obstacle_detector"),
+        ("dem_params", os.path.join(config, "dem_builder.yaml"), "params file of dem_builder"),
+        ("simplifier_params", os.path.join(config, "cloud_simplifier.yaml"),
+         "params file of cloud_simplifier"),
+        ("log_level", "info", "debug, info, warn, error or fatal"),
+        ("large_data", "false", "run the nodes with the shipped Fast DDS large-data profile "
+                                "(config/fastdds_large_data.xml)"),
+    ]
     return LaunchDescription([
-        DeclareLaunchArgument("points", default_value="points",
-                              description="PointCloud2 input topic"),
-        DeclareLaunchArgument("odom", default_value="odom",
-                              description="nav_msgs/Odometry of the vehicle"),
-        DeclareLaunchArgument("namespace", default_value="",
-                              description="namespace of the nodes, e.g. uav1"),
-        DeclareLaunchArgument("simplifier", default_value="false",
-                              description="also start cloud_simplifier (points_simplified)"),
-        DeclareLaunchArgument("use_sim_time", default_value="false",
-                              description="take the time from /clock (a bag played with "
-                                          "--clock)"),
-        DeclareLaunchArgument("detector_params",
-                              default_value=os.path.join(config, "obstacle_detector.yaml"),
-                              description="params file of obstacle_detector"),
-        DeclareLaunchArgument("dem_params",
-                              default_value=os.path.join(config, "dem_builder.yaml"),
-                              description="params file of dem_builder"),
-        DeclareLaunchArgument("simplifier_params",
-                              default_value=os.path.join(config, "cloud_simplifier.yaml"),
-                              description="params file of cloud_simplifier"),
-        DeclareLaunchArgument("log_level", default_value="info",
-                              description="debug, info, warn, error or fatal"),
-        DeclareLaunchArgument("large_data", default_value="false",
-                              description="run the nodes with the shipped Fast DDS "
-                                          "large-data profile (config/fastdds_large_data.xml)"),
+        *(DeclareLaunchArgument(name, default_value=default, description=description)
+          for name, default, description in arguments),
         SetEnvironmentVariable("FASTRTPS_DEFAULT_PROFILES_FILE",
                                os.path.join(config, "fastdds_large_data.xml"),
                                condition=IfCondition(LaunchConfiguration("large_data"))),
