@@ -89,6 +89,19 @@ def cell_index(offset: np.ndarray, edge: float) -> np.ndarray:
     return np.floor(offset / edge + CELL_SLACK).astype(np.int64)
 
 
+def lowest_per_cell(xyz: np.ndarray, origin: np.ndarray, cell: float) -> np.ndarray:
+    """(C,) int64 indices of the lowest of (P, 3) points xyz (m) in each occupied XY cell
+    of `cell` m counted from `origin` (2,) m (`cell_index`: a point on a cell's edge falls
+    in the same cell wherever the cloud lies), in the cells' order (x, then y)."""
+    if len(xyz) == 0:
+        return np.zeros(0, np.int64)
+    ij = cell_index(xyz[:, :2] - origin, cell)
+    ij -= column_min(ij)
+    key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
+    order = np.lexsort((xyz[:, 2], key))
+    return order[np.r_[True, key[order][1:] != key[order][:-1]]]
+
+
 def snap_micrometres(a: np.ndarray) -> np.ndarray:
     """a (any shape, metres) rounded to the micrometre, in place; returns a."""
     a *= 1e6

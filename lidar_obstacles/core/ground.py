@@ -77,7 +77,8 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from lidar_obstacles.config import GroundConfig, RansacConfig, TilingConfig, TinConfig
 from lidar_obstacles.core.arrays import (all_columns, cell_index, column_max, column_min,
-                                         points_xyz, snap_micrometres, tree_query)
+                                         lowest_per_cell, points_xyz, snap_micrometres,
+                                         tree_query)
 from lidar_obstacles.core.ransac import ransac_plane
 from lidar_obstacles.errors import CloudFormatError
 
@@ -318,16 +319,6 @@ class GroundResult:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-def _lowest_per_cell(xy: np.ndarray, z: np.ndarray, cell: float) -> np.ndarray:
-    """Indices of the lowest point of each occupied cell."""
-    ij = np.floor((xy - xy.min(axis=0)) / cell).astype(np.int64)
-    key = ij[:, 0] * (ij[:, 1].max() + 1) + ij[:, 1]
-    order = np.lexsort((z, key))
-    first = np.ones(len(order), bool)
-    first[1:] = key[order[1:]] != key[order[:-1]]
-    return order[first]
-
-
 def _drop_odd_seeds(seeds_xyz: np.ndarray) -> np.ndarray:
     """(S,) bool over seeds (S, 3) m: those neither far below the least-squares plane of
     their 8 nearest seeds (a low blunder) nor far above it (a cell holding only an object,
@@ -450,7 +441,7 @@ def tin_densification(xyz: np.ndarray, cfg: TinConfig, *, fixed: np.ndarray | No
     ground = np.zeros(n, bool)
     if n == 0:
         return ground
-    seeds = _lowest_per_cell(xyz[:, :2], xyz[:, 2], cfg.cell_size)
+    seeds = lowest_per_cell(xyz, column_min(xyz[:, :2]), cfg.cell_size)
     if drop_odd_seeds:
         seeds = seeds[_drop_odd_seeds(xyz[seeds])]
     ground[seeds] = True
@@ -1495,17 +1486,6 @@ class GroundSurface:
         return out
 
 
-def _cell_lowest(pts: np.ndarray, origin: np.ndarray, cell: float) -> np.ndarray:
-    """(C, 3): the lowest of (P, 3) points (m) in each occupied XY cell of `cell` m
-    counted from `origin` (2,)."""
-    ij = cell_index(pts[:, :2] - origin, cell)
-    ij -= column_min(ij)
-    key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
-    order = np.lexsort((pts[:, 2], key))
-    first = np.flatnonzero(np.r_[True, np.diff(key[order]) != 0])
-    return pts[order[first]]
-
-
 def _ransac_tiles(xyz: np.ndarray, tiling: TilingConfig, rcfg: RansacConfig,
                   rng: np.random.Generator, fixed: np.ndarray | None
                   ) -> tuple[np.ndarray, int, int]:
@@ -1552,7 +1532,7 @@ def _ransac_tiles(xyz: np.ndarray, tiling: TilingConfig, rcfg: RansacConfig,
             # tile): the inliers lie within the threshold by definition (their spread
             # could never pass max_residual), and all the points' span is the trees' and
             # towers' too (a 20 m pole split a flat tile five times).
-            low = _cell_lowest(pts, corner - ov, size / 8.0)
+            low = pts[lowest_per_cell(pts, corner - ov, size / 8.0)]
             resid = res.plane.distance(low)
             spread = 1.4826 * np.median(np.abs(resid - np.median(resid)))
             relief = np.ptp(low[:, 2])  # the paper's failures: blocks spanning relief

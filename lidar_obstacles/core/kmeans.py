@@ -30,7 +30,7 @@ from scipy import ndimage
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from lidar_obstacles.config import KmeansConfig
-from lidar_obstacles.core.arrays import points_xyz, tree_query
+from lidar_obstacles.core.arrays import column_min, lowest_per_cell, points_xyz, tree_query
 from lidar_obstacles.core.interpolate import idw, neighbour_residual, tin
 from lidar_obstacles.errors import CloudFormatError
 
@@ -342,10 +342,7 @@ def lower_envelope_filter(xyz: np.ndarray, *, cell: float, threshold: float) -> 
     n = len(xyz)
     if n < 4:
         return np.ones(n, dtype=bool)
-    ij = np.floor((xyz[:, :2] - xyz[:, :2].min(axis=0)) / cell).astype(np.int64)
-    key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
-    order = np.lexsort((xyz[:, 2], key))
-    lowest = order[np.r_[True, key[order][1:] != key[order][:-1]]]
+    lowest = lowest_per_cell(xyz, column_min(xyz[:, :2]), cell)
     surface = tin(xyz[lowest, :2], xyz[lowest, 2], xyz[:, :2])
     # Beyond the minima's hull (the survey's rim) the 3 nearest minima stand in for the
     # TIN: on AHN4 this took the intensity ground's precision from 0.77 to 0.92 (roofs
