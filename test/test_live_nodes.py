@@ -133,7 +133,12 @@ def test_nodes_process_a_played_flight(flight, ros_node, tmp_path, dem_input):
             for key, msg_type, topic, qos in wanted]
     # The detector keeps every cloud (a live node keeps the newest one only, `input.depth: 1`,
     # and drops what it cannot keep up with; how many depends on the machine's load).
-    det = _start("lidar_obstacles.scripts.obstacle_detector", "-p", "input.depth:=30")
+    # Its outputs keep 30 too: at the default depth of 2 a reliable writer drops a sample
+    # that a subscriber on a busy machine (this test's, beside three processes on 2
+    # cores) has not acknowledged before two newer ones come (CI: 29 of 30 received).
+    det = _start("lidar_obstacles.scripts.obstacle_detector", "-p", "input.depth:=30",
+                 *(arg for topic in ("obstacles", "ground") for arg in
+                   ("-p", f"qos_overrides.{NS}/{topic}.publisher.depth:=30")))
     dem = _start("lidar_obstacles.scripts.dem_builder", "-p", "dem.publish_rate:=2.0",
                  "-p", f"export.path:={tmp_path / 'live_dem.tif'}", *dem_input)
     try:
