@@ -693,13 +693,25 @@ class _Opening:
     strip of any direction fits one of them: samp61 0.769 -> 0.807, samp23 0.906 -> 0.924,
     but samp31 0.945 -> 0.918, samp51 0.908 -> 0.884; mean 3.69-3.75 % / 0.877-0.879,
     blocks 80.9-81.4 % (in the plain opening, the de-trended one, or both).
+
+    The opening itself runs in float32 (its passes are memory-bound, as the in-painting's):
+    the hybrid filter 7-10 % faster on the 15 ISPRS samples (0.45 -> 0.48 M points/s,
+    medians of 8 interleaved runs), and of the 18 real files' 1.84 M points 7 labels
+    change, on samp22 and samp41: steps equal to the threshold to the centimetre, which
+    rounding decides either way (mean total error and kappa the same to 0.001 %). The
+    values are centred micrometres, so a cloud moved by whole metres still rounds the
+    same. `work`, `scratch` and `eroded` (float64) serve the rim, peak and island windows.
     """
 
     def __init__(self, shape: tuple[int, int], max_radius: int) -> None:
         size = (shape[0] + 2 * max_radius) * (shape[1] + 2 * max_radius)
         self.work = (np.empty(size), np.empty(size))
-        self.eroded, self.opened, self.last = np.empty(shape), np.empty(shape), np.empty(shape)
-        self.scratch, self.flags = np.empty(shape), np.empty(shape, bool)
+        self.eroded, self.scratch = np.empty(shape), np.empty(shape)
+        f = np.float32
+        self._work = (np.empty(size, f), np.empty(size, f))
+        self._eroded, self._opened, self._last, self._scratch = (np.empty(shape, f)
+                                                                 for _ in range(4))
+        self._flags = np.empty(shape, bool)
 
     def __call__(self, first: np.ndarray, radii: list[int], steep_radius: int,
                  rise_per_cell: float) -> tuple[np.ndarray, np.ndarray]:
@@ -710,8 +722,8 @@ class _Opening:
         Squares absorb smaller squares, so the opening of the previous opening by radius r
         is the opening of the first surface by r: its erosion comes from the previous
         erosion by the few cells r grew (exact, min and max only)."""
-        work, scratch, flags = self.work, self.scratch, self.flags
-        eroded, opened, last = self.eroded, self.opened, self.last
+        work, scratch, flags = self._work, self._scratch, self._flags
+        eroded, opened, last = self._eroded, self._opened, self._last
         np.copyto(eroded, first)
         np.copyto(last, first)
         objects = np.zeros(first.shape, bool)
@@ -729,7 +741,7 @@ class _Opening:
             previous = radius
             if radius == steep_radius:
                 near = objects.copy()
-        self.opened, self.last = opened, last
+        self._opened, self._last = opened, last
         return objects, near
 
 
