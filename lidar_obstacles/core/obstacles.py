@@ -1359,8 +1359,15 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
     wire_tree = cKDTree(wire_xyz) if len(wire_xyz) else None
     wire_xy_tree = cKDTree(wire_xyz[:, :2]) if len(wire_xyz) else None
     directions = _WireDirections(wire_xyz)
-    for lab in np.concatenate([tall, stubs]):
-        local = np.flatnonzero(labels == lab)  # a few tall objects: cheaper than sorting
+    judged = np.concatenate([tall, stubs])
+    # the judged objects' members, grouped by one stable sort (in index order within each),
+    # not one scan of every member per object: a corridor strip has tens of tall trees
+    mine = np.flatnonzero(np.isin(labels, judged))
+    mine = mine[np.argsort(labels[mine], kind="stable")]
+    first = np.searchsorted(labels[mine], judged, side="left")
+    last = np.searchsorted(labels[mine], judged, side="right")
+    for lab, lo, hi in zip(judged, first, last):
+        local = mine[lo:hi]
         p, h = xyz[members[local]], hag[members[local]]
         top_h = float(h.max())
         # A tower carries wires: they end at its arms, at or below its top (a tree under
