@@ -13,7 +13,9 @@
   test (HybridSettings.island_rise) takes back out;
 - dem_edge_echoes.png: the rolling DEM of the simulator's mixed flight (10 s, seed 1)
   against the true terrain, without and with the test of lone low echoes beyond the
-  strips' edges (HybridSettings.lone_reach).
+  strips' edges (HybridSettings.lone_reach);
+- isprs_samp11_streamed.png: ISPRS samp11 streamed in `las2bag`'s 10 m strips through
+  the detector, and the share of its ground taken for objects by depth in the strip.
 
     .venv/bin/python docs/figures.py
 """
@@ -148,10 +150,62 @@ def dem_echo_picture() -> None:
     save_quantized(fig, "dem_edge_echoes.png")
 
 
+def streamed_edge_picture(strip: float = 10.0) -> None:
+    """ISPRS samp11 streamed as `las2bag` cuts it (strips `strip` m deep across its length,
+    south to north) through the detector, against the file whole: where the ground is
+    taken for objects, and how that share grows towards each strip's leading edge."""
+    from lidar_obstacles.config import ObstacleDetectorConfig
+    from lidar_obstacles.evaluate import load_input, run_detector
+    from lidar_obstacles.ros.offline import las2bag
+
+    src = DATA / "isprs" / "samp11-utm.laz"
+    with tempfile.TemporaryDirectory() as tmp:
+        las2bag(src, Path(tmp) / "bag", strip_width=strip)
+        inp = load_input(Path(tmp) / "bag")
+        run_detector(inp, ObstacleDetectorConfig())
+    xyz = np.concatenate([c.xyz for c in inp.clouds])
+    ref = np.concatenate([c.reference for c in inp.clouds]) == 2
+    ground = np.concatenate([c.predicted for c in inp.clouds]) == 2
+    # depth in its strip (m from the strip's southern, trailing edge)
+    depth = np.concatenate([c.xyz[:, 1] - c.xyz[:, 1].min() for c in inp.clouds])
+    whole = evaluate(src)  # (its figures, for the title)
+    fig, (top, share) = plt.subplots(1, 2, figsize=(11, 7.5), width_ratios=(1.1, 1),
+                                     constrained_layout=True)
+    lo = xyz.min(axis=0)
+    type1, type2 = ref & ~ground, ~ref & ground
+    top.scatter(*(xyz[:, :2] - lo[:2]).T, s=0.3, c="0.85", lw=0)
+    top.scatter(*(xyz[type2, :2] - lo[:2]).T, s=1.2, c="#1f77b4", lw=0,
+                label=f"object taken for ground: {type2.sum():,}")
+    top.scatter(*(xyz[type1, :2] - lo[:2]).T, s=1.2, c="#d62728", lw=0,
+                label=f"ground taken for objects: {type1.sum():,}")
+    for c in inp.clouds[1:]:
+        top.axhline(c.xyz[:, 1].min() - lo[1], c="0.5", lw=0.3)
+    total = 100 * (type1.sum() + type2.sum()) / len(ref)
+    top.set_title(f"samp11 in {len(inp.clouds)} strips of {strip:g} m, streamed: total "
+                  f"error {total:.1f} %\n(the file whole: "
+                  f"{100 * whole['ground_object']['total_error']:.1f} %)", fontsize=10)
+    top.set_aspect("equal")
+    top.set_xlabel("x (m)")
+    top.set_ylabel("y (m), the strips' order: south to north, uphill")
+    top.legend(loc="upper left", fontsize=8, markerscale=8, framealpha=0.9)
+    bins = np.arange(0.0, strip + 1.0)
+    counts = np.histogram(depth[ref], bins)[0]
+    missed = np.histogram(depth[type1], bins)[0]
+    share.bar(bins[:-1] + 0.5, 100 * missed / np.maximum(counts, 1), width=0.8,
+              color="#d62728")
+    share.set_xlabel("depth in the strip (m): trailing edge, next to what came before, "
+                     "at 0;\nleading edge, with nothing yet beyond it, at the right")
+    share.set_ylabel("reference ground taken for objects (%)")
+    share.set_title("a slope rising past the leading edge looks, from one side, like a "
+                    "roof\ncut by it: the opening lowers it there", fontsize=10)
+    save_quantized(fig, "isprs_samp11_streamed.png")
+
+
 def main() -> None:
     report_pictures()
     island_picture()
     dem_echo_picture()
+    streamed_edge_picture()
     las = read_las(DATA / "ahn4" / "ahn_2496_9727.laz")
     xyz, pts = las.xyz, las.points
     simple = simplify(xyz, cfg=SimplifyConfig(), return_number=pts["return_number"],
