@@ -512,3 +512,21 @@ def test_ransac_tiles_keep_the_points_on_the_far_edges():
     g = np.mgrid[0:81, 0:81].reshape(2, -1).T.astype(float)
     res = _ransac_ground(np.column_stack([g, np.zeros(len(g))]))
     assert res.ground.all()
+
+
+def test_the_grid_placement_moves_the_cells():
+    """HybridSettings.anchor (the benchmark's grid placements) puts the raster's corner that
+    many cells before the points: ground 0.3 m up on every other metre in x shows in the
+    surface when the cells are whole metres, and is cut off by cells that straddle the
+    steps; y shifts leave x's cells alone; (0, 0) is the default."""
+    x, y = np.meshgrid(np.arange(0.05, 20, 0.5), np.arange(0.05, 20, 0.5))
+    pts = np.column_stack([x.ravel(), y.ravel(), 0.3 * (np.floor(x.ravel()) % 2)])
+    surface = {at: morphological_ground(pts, HybridSettings(anchor=at))[1]
+               for at in [(0.0, 0.0), (0.5, 0.0), (0.0, 0.5)]}
+    np.testing.assert_array_equal(surface[(0.0, 0.0)], morphological_ground(
+        pts, HybridSettings())[1])
+    assert surface[(0.0, 0.0)].max() == pytest.approx(0.3)
+    assert surface[(0.0, 0.0)].mean() > 0.1
+    # each cell but the last holds a low point
+    assert np.mean(np.abs(surface[(0.5, 0.0)]) < 1e-9) > 0.95
+    np.testing.assert_allclose(surface[(0.0, 0.5)], surface[(0.0, 0.0)], atol=1e-12)
