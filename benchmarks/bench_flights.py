@@ -5,7 +5,8 @@ Usage: .venv/bin/python benchmarks/bench_flights.py [--quick | --smoke --out DIR
 Each flight (the simulator's 10 Hz clouds of ~50 000 points, 40 m above the terrain, in
 the map frame) goes through one `ObstacleDetector`, message by message as the node takes
 them, and its classes are compared with the simulator's labels: ground kappa, recall and
-precision of buildings, wires and towers, vegetation's recall, and what the scene does not
+precision of buildings, wires and towers, vegetation's recall (all of it, and over 0.5 m:
+the low cover within the ground band counts as ground), and what the scene does not
 hold but was found in it (tower or wire points in a forest, say). Also the median and 95th
 percentile of the detector's time per message (ground step, obstacle step), in this
 process, one thread for BLAS as in the node. Flights: every scene with seeds 0-2, 10 s
@@ -44,9 +45,17 @@ def run_flight(scene: str, seed: int, seconds: float) -> dict:
         obstacle_ms.append(1e3 * (t2 - t1))
         refs.append(np.asarray(p["classification"]))
         preds.append(res.classes)
-    m = evaluate_classes(np.concatenate(refs), np.concatenate(preds))
+    ref, pred = np.concatenate(refs), np.concatenate(preds)
+    m = evaluate_classes(ref, pred)
     row = {"scene": scene, "seed": seed, "messages": len(refs),
            "ground kappa": m["ground_object"]["kappa"]}
+    # Vegetation over 0.5 m (4, 5), what a UAV could hit: the scenes' low cover (3, grass
+    # tufts and crops 0.2-0.5 m) lies within the ground filter's band and counts as ground,
+    # which keeps `mixed` seeds 1 and 2's vegetation recall under 0.5 however their trees
+    # are found.
+    tall = np.isin(ref, (4, 5))
+    if tall.any():
+        row["vegetation over 0.5 m recall"] = float(np.isin(pred[tall], (3, 4, 5)).mean())
     for name in ("vegetation", *CLASSES):
         per = m["per_class"][name]
         if per["reference_count"]:
@@ -72,7 +81,7 @@ def main() -> None:
     seeds = per_mode(args, (0, 1, 2), (0,), (0,))
     seconds = per_mode(args, 10.0, 5.0, 1.0)
     rows = [run_flight(scene, seed, seconds) for scene in scenes for seed in seeds]
-    cols = ["scene", "seed", "ground kappa", "vegetation recall"]
+    cols = ["scene", "seed", "ground kappa", "vegetation recall", "vegetation over 0.5 m recall"]
     for name in CLASSES:
         cols += [f"{name} recall", f"{name} precision", f"{name} points found, none there"]
     cols += ["ground ms p50", "ground ms p95", "obstacles ms p50", "obstacles ms p95"]
