@@ -356,12 +356,16 @@ def _main(argv: list[str] | None) -> int:
     """`_command`, the caller's signal handlers restored after it (for a caller in the same
     process: tests, scripts; an ignored SIGINT would be ignored by the processes they
     start afterwards too)."""
+    from lidar_obstacles.scripts import quiet_interrupts_in_callbacks
+
     before = {stop: signal.getsignal(stop) for stop in STOPS}
+    restore_hook = quiet_interrupts_in_callbacks()  # (while _on_signal raises)
     try:
         return _command(argv)
     finally:
         for stop, handler in before.items():
             signal.signal(stop, handler)
+        restore_hook()
 
 
 def _command(argv: list[str] | None) -> int:
@@ -374,7 +378,7 @@ def _command(argv: list[str] | None) -> int:
     from lidar_obstacles.core.arrays import reuse_freed_memory, single_threaded_blas  # numpy
 
     if _RECEIVED:
-        raise KeyboardInterrupt  # (taken for a missing module by an import)
+        raise KeyboardInterrupt  # (taken for a missing module, or dropped by a callback)
 
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)

@@ -83,17 +83,25 @@ def stop_inside_exec(module: str, tmp_path: Path) -> dict[str, str]:
     return dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(REPO)]))
 
 
-def signal_at_import(entry: str, module: str, sig: int = signal.SIGINT) -> str:
+def signal_at_import(entry: str, module: str, sig: int = signal.SIGINT, *,
+                     in_callback: bool = False) -> str:
     """A script that runs ``main()`` of `entry` (a module, as a console script does) and
     sends itself `sig` when `module` is first imported: the signal comes inside that
     import, wherever it is made (a C extension's: numpy's of datetime), at a moment no
-    machine load can move."""
-    return (f"import os, sys\n"
+    machine load can move. With `in_callback`, the signal comes inside a weakref's
+    callback there, whose exceptions Python prints ("Exception ignored in") and drops, as
+    it does for importlib's own module locks."""
+    send = f"signal.raise_signal({int(sig)})"  # (the handler runs before it returns)
+    if in_callback:
+        send = (f"held = type('Held', (), {{}})()\n"
+                f"            keep = weakref.ref(held, lambda ref: {send})\n"
+                f"            del held")
+    return (f"import signal, sys, weakref\n"
             f"class Signal:\n"
             f"    def find_spec(self, name, path=None, target=None):\n"
             f"        if name == {module!r}:\n"
             f"            sys.meta_path.remove(self)\n"
-            f"            os.kill(os.getpid(), {int(sig)})\n"
+            f"            {send}\n"
             f"sys.meta_path.insert(0, Signal())\n"
             f"from {entry} import main\n"
             f"sys.exit(main())\n")

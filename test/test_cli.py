@@ -164,6 +164,19 @@ def test_a_signal_inside_an_import_a_c_extension_makes_is_one_line(sig, code, wo
     assert (proc.returncode, proc.stderr) == (code, f"lidar-obstacles: {word}\n")
 
 
+@pytest.mark.parametrize("sig, code, word", [(signal.SIGINT, 130, "interrupted"),
+                                             (signal.SIGTERM, 143, "terminated")])
+def test_a_signal_inside_a_weakref_callback_is_one_line_too(sig, code, word, tmp_path):
+    # Python prints and drops what a weakref's callback raises: it printed the
+    # KeyboardInterrupt's traceback, and the command went on
+    proc = subprocess.run([sys.executable, "-c",
+                           signal_at_import("lidar_obstacles.cli", "numpy", sig,
+                                            in_callback=True),
+                           "simulate", str(tmp_path / "bag"), "--duration", "600"],
+                          cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert (proc.returncode, proc.stderr) == (code, f"lidar-obstacles: {word}\n")
+
+
 def test_run_with_python_m_a_ctrl_c_inside_an_exec_still_exits_130(tmp_path):
     """`python -m lidar_obstacles.cli` (as the tests run it): a Ctrl-C raised inside code
     that exec() runs from a string, as dataclasses make their methods while modules are

@@ -62,6 +62,21 @@ def test_a_stop_signal_inside_an_import_a_c_extension_makes_stops_the_node_clean
 
 
 @pytest.mark.parametrize("name", sorted(NODES))
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_signal_inside_a_weakref_callback_stops_the_node_without_a_traceback(name, sig):
+    """A signal 0.1 s into a node's imports once landed in the weakref callback of one of
+    importlib's module locks (in CI): Python printed the KeyboardInterrupt raised there
+    as "Exception ignored in ..." with its traceback. Here the signal comes inside such a
+    callback while rclpy is imported."""
+    proc = subprocess.run([sys.executable, "-c",
+                           signal_at_import(NODES[name], "rclpy", sig, in_callback=True),
+                           "--ros-args", "-r", "__ns:=/start"],
+                          cwd=REPO, capture_output=True, text=True, timeout=120)
+    word = "interrupted" if sig == signal.SIGINT else "terminated"
+    assert (proc.returncode, proc.stderr) == (0, f"{name}: {word}\n")
+
+
+@pytest.mark.parametrize("name", sorted(NODES))
 def test_a_node_run_as_a_module_stops_cleanly_when_the_stop_lands_inside_an_exec(name, tmp_path):
     """`python -m lidar_obstacles.scripts.<node>` (what the tests and the benchmarks run in a
     checkout without the executables): a Ctrl-C raised inside code that exec() runs from a

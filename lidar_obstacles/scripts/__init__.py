@@ -15,7 +15,7 @@ import importlib
 import os
 import signal
 import sys
-from typing import NoReturn
+from typing import Callable, NoReturn
 
 
 _RECEIVED: list[int] = []  # the stop signals received while the node was imported
@@ -28,6 +28,24 @@ def _on_signal(signum: int, frame: object) -> None:
     that for a missing module goes on without it."""
     _RECEIVED.append(signum)
     raise KeyboardInterrupt
+
+
+def quiet_interrupts_in_callbacks() -> Callable[[], None]:
+    """While a stop signal handler raises where the program is, a signal can land in a
+    callback whose exceptions Python prints and drops: a weakref's (importlib's module
+    locks have one) or a ``__del__``. It printed "Exception ignored in ..." and a traceback
+    for the KeyboardInterrupt (once in CI, a SIGTERM 0.1 s into a node's imports). The
+    handlers note every signal, and their callers act on the note, so that exception is not
+    lost with this hook; others are printed as before. Returns what puts the previous hook
+    back."""
+    previous = sys.unraisablehook
+
+    def hook(unraisable: "sys.UnraisableHookArgs") -> None:
+        if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+            previous(unraisable)
+
+    sys.unraisablehook = hook
+    return lambda: setattr(sys, "unraisablehook", previous)
 
 
 # What each node does, and its topics (relative names), for --help.
@@ -80,10 +98,11 @@ def start(name: str, args: list[str] | None) -> int:
     _RECEIVED.clear()  # (of an earlier call in this process)
     signal.signal(signal.SIGINT, _on_signal)
     signal.signal(signal.SIGTERM, _on_signal)
+    restore_hook = quiet_interrupts_in_callbacks()
     try:
         node = importlib.import_module(f"lidar_obstacles.ros.{name}")
         if _RECEIVED:
-            raise KeyboardInterrupt  # (taken for a missing module by an import)
+            raise KeyboardInterrupt  # (taken for a missing module, or dropped by a callback)
         return node.main(args)
     except BaseException:
         if not _RECEIVED:
@@ -92,6 +111,8 @@ def start(name: str, args: list[str] | None) -> int:
         word = "terminated" if _RECEIVED[-1] == signal.SIGTERM else "interrupted"
         print(f"{name}: {word}", file=sys.stderr)
         return 0
+    finally:
+        restore_hook()
 
 
 def exit_process(status: int, *, stopped: bool) -> NoReturn:
