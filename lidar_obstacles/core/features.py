@@ -56,7 +56,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lidar_obstacles.core.arrays import tree_query
+from lidar_obstacles.core.arrays import eigenvector3, symmetric_eigenvalues3, tree_query
 from lidar_obstacles.config import FeaturesConfig
 from lidar_obstacles.errors import CloudFormatError
 
@@ -206,7 +206,7 @@ def _neighbours(xyz: np.ndarray, k: int) -> np.ndarray:
 
 
 def _pca(offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Normal (C, 3) and flatness l3 / l2 (C,) of each neighbourhood (1 when l2 = 0).
+    """Normal (C, 3) and flatness l3 / l2 (C,) of each neighbourhood (1 when l2 ~ 0).
 
     offsets: (C, k, 3) neighbours minus their point; the point itself (offset 0) belongs
     to the neighbourhood."""
@@ -214,11 +214,13 @@ def _pca(offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     mean = offsets.sum(axis=1) / (k + 1)
     centred = offsets - mean[:, None, :]
     cov = np.einsum("cki,ckj->cij", centred, centred) + mean[:, :, None] * mean[:, None, :]
-    values, vectors = np.linalg.eigh(cov)  # ascending
-    # l3 / l2: ~0 on a plane, ~1 on a line (a wire is no plane, l3 / sum(l) is ~0 on both)
-    second = np.where(values[:, 1] > 0, values[:, 1], 1.0)
-    flatness = np.where(values[:, 1] > 0, values[:, 0] / second, 1.0)
-    return vectors[:, :, 0], flatness
+    values = np.maximum(symmetric_eigenvalues3(cov), 0.0)  # descending
+    # l3 / l2: ~0 on a plane, ~1 on a line (a wire is no plane, l3 / sum(l) is ~0 on both);
+    # 1 where l2 is within the closed form's rounding of 0 (points on one line, or one
+    # point): its arccos keeps ~8 digits of l1 where two eigenvalues meet
+    spans = values[:, 1] > 1e-6 * values[:, 0]
+    flatness = np.where(spans, values[:, 2] / np.where(spans, values[:, 1], 1.0), 1.0)
+    return eigenvector3(cov, values[:, 2]), flatness
 
 
 def _gaussian_map(offsets: np.ndarray, pair_m: np.ndarray, pair_n: np.ndarray,

@@ -46,7 +46,8 @@ from scipy.spatial import cKDTree
 
 from lidar_obstacles.config import ClearanceConfig, ObstaclesConfig
 from lidar_obstacles.core.arrays import (all_columns, cell_index, column_max, column_mean,
-                                         column_min, row_norm, tree_query, unique_ints)
+                                         column_min, eigenvector3, row_norm, symmetric_eig3,
+                                         symmetric_eigenvalues3, tree_query, unique_ints)
 from lidar_obstacles.core.classes import (
     BUILDING,
     GROUND,
@@ -231,56 +232,6 @@ def _workers(n_queries: int, k: int = 1) -> int:
     a small query costs). The shape features' search (k = 32) is worth it from ~600
     queries: on a forest strip's 12 000 queries, 51-69 ms on one core, 32 ms on two."""
     return -1 if n_queries * k >= PARALLEL_MIN else 1
-
-
-def symmetric_eig3(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Eigenvalues (M, 3) descending and the unit eigenvectors (M, 3) of the largest and the
-    smallest, of (M, 3, 3) symmetric matrices, in closed form (Smith 1961).
-
-    ~3 x faster than batched ``np.linalg.eigh``, whose per-matrix LAPACK call was the
-    largest cost of the wire search."""
-    values = symmetric_eigenvalues3(cov)
-    return values, eigenvector3(cov, values[:, 0]), eigenvector3(cov, values[:, 2])
-
-
-def symmetric_eigenvalues3(cov: np.ndarray) -> np.ndarray:
-    """Eigenvalues (M, 3), descending, of (M, 3, 3) symmetric matrices (Smith 1961)."""
-    a00, a11, a22 = cov[:, 0, 0], cov[:, 1, 1], cov[:, 2, 2]
-    a01, a02, a12 = cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 2]
-    q = (a00 + a11 + a22) / 3.0
-    p1 = a01 ** 2 + a02 ** 2 + a12 ** 2
-    p = np.sqrt(((a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * p1) / 6.0)
-    safe = np.where(p > 0, p, 1.0)
-    b00, b11, b22 = (a00 - q) / safe, (a11 - q) / safe, (a22 - q) / safe
-    b01, b02, b12 = a01 / safe, a02 / safe, a12 / safe
-    det_b = (b00 * (b11 * b22 - b12 ** 2) - b01 * (b01 * b22 - b12 * b02)
-             + b02 * (b01 * b12 - b11 * b02))
-    phi = np.arccos(np.clip(det_b / 2.0, -1.0, 1.0)) / 3.0
-    l1 = q + 2.0 * p * np.cos(phi)
-    l3 = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
-    return np.column_stack([l1, 3.0 * q - l1 - l3, l3])
-
-
-def eigenvector3(cov: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    """Unit eigenvectors (M, 3) of (M, 3, 3) symmetric matrices for their eigenvalues lam
-    (M,); vertical where any direction is one (isotropic)."""
-    a00, a11, a22 = cov[:, 0, 0], cov[:, 1, 1], cov[:, 2, 2]
-    a01, a02, a12 = cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 2]
-    # The eigenvector is orthogonal to the rows of A - lam I: the longest cross product of
-    # two rows is the best conditioned choice.
-    r0 = np.column_stack([a00 - lam, a01, a02])
-    r1 = np.column_stack([a01, a11 - lam, a12])
-    r2 = np.column_stack([a02, a12, a22 - lam])
-    cands = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)])
-    norms = np.linalg.norm(cands, axis=2)
-    best = norms.argmax(axis=0)
-    idx = np.arange(len(lam))
-    v, nv = cands[best, idx], norms[best, idx]
-    out = np.zeros_like(v)
-    ok = nv > 0
-    out[ok] = v[ok] / nv[ok, None]
-    out[~ok] = (0.0, 0.0, 1.0)
-    return out
 
 
 @dataclass(frozen=True)

@@ -43,7 +43,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
-from lidar_obstacles.core.arrays import tree_query
+from lidar_obstacles.core.arrays import eigenvector3, symmetric_eigenvalues3, tree_query
 from lidar_obstacles.config import SimplifyConfig
 from lidar_obstacles.core.ground import far_points
 from lidar_obstacles.core.interpolate import tin
@@ -135,10 +135,10 @@ def _neighbourhood_pca(xyz: np.ndarray, neighbours: int) -> np.ndarray:
             s = np.einsum("nk,nk->n", nb[:, :, a], nb[:, :, b])
             cov[:, a, b] = s
             cov[:, b, a] = s
-        normals[lo:lo + _BATCH] = np.linalg.eigh(cov)[1][:, :, 0]
+        normals[lo:lo + _BATCH] = eigenvector3(cov, symmetric_eigenvalues3(cov)[:, 2])
     # Airborne surfaces are seen from above, so they face up: z >= 0. Exactly horizontal
     # normals (vertical walls to the last bit) take x >= 0, then y >= 0, so a flip is never
-    # left to the sign LAPACK happened to return.
+    # left to the sign the solver happened to give.
     flip = (normals[:, 2] < 0) | ((normals[:, 2] == 0) & (
         (normals[:, 0] < 0) | ((normals[:, 0] == 0) & (normals[:, 1] < 0))))
     normals[flip] *= -1.0
