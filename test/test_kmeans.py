@@ -197,3 +197,28 @@ def test_elbow_sweep_runs_every_restart_for_every_k(monkeypatch):
     res = km.elbow_kmeans(x, max_k=10, restarts=10, rng=0)
     assert len(res.sse) == 10 and runs[0] == 100 and len(seeds) == 100
     assert len(set(seeds[30:40])) > 1  # the restarts of one k start from different seeds
+
+
+def test_several_features_are_fitted_on_one_thread_and_the_pools_come_back(monkeypatch):
+    """scikit-learn's OpenMP threads spin-wait on a busy machine (35 s for a 0.6 s sweep):
+    every fit runs with its thread pools on one thread, and leaves them as they were."""
+    from sklearn.cluster import KMeans
+    from threadpoolctl import threadpool_info
+
+    def openmp_threads() -> set[int]:
+        return {lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "openmp"}
+
+    seen: list[set[int]] = []
+    fit = KMeans.fit
+
+    def recording_fit(self, *args, **kwargs):
+        seen.append(openmp_threads())
+        return fit(self, *args, **kwargs)
+
+    monkeypatch.setattr(KMeans, "fit", recording_fit)
+    before = openmp_threads()
+    x = np.random.default_rng(3).normal(size=(500, 3))
+    for _ in range(2):  # (the second fit reuses the pools found by the first)
+        kmeans(x, 3, restarts=2)
+    assert seen == [{1}, {1}]
+    assert openmp_threads() == before
