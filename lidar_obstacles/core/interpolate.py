@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import contextlib
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Callable, ContextManager
 
 import numpy as np
@@ -32,7 +31,7 @@ from scipy.linalg import solve_triangular
 from scipy.optimize import least_squares
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
-from lidar_obstacles.core.arrays import tree_query
+from lidar_obstacles.core.arrays import thread_pools, tree_query
 from lidar_obstacles.config import KrigingConfig, RbfConfig, RbfnnConfig
 from lidar_obstacles.errors import CloudFormatError
 
@@ -41,13 +40,6 @@ _CHUNK = 4096  # local systems solved per stacked call: bounds memory to a few M
 
 
 # --------------------------------------------------------------------------- input
-
-
-@lru_cache(maxsize=1)
-def _threadpools():
-    from threadpoolctl import ThreadpoolController
-
-    return ThreadpoolController()
 
 
 def one_blas_thread() -> ContextManager:
@@ -60,7 +52,7 @@ def one_blas_thread() -> ContextManager:
     BLAS is on one thread already (the nodes, `replay`'s workers): setting it, even to 1,
     in a forked child starts OpenBLAS's threads, which spin ~0.1 s each.
     """
-    blas = _threadpools().select(user_api="blas")
+    blas = thread_pools().select(user_api="blas")
     if all(lib.num_threads == 1 for lib in blas.lib_controllers):
         return contextlib.nullcontext()
     return blas.limit(limits=1)

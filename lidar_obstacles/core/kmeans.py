@@ -22,22 +22,18 @@ removes outliers by building TINs repeatedly. Here every step is automatic:
 """
 from __future__ import annotations
 
-import functools
 import logging
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from lidar_obstacles.config import KmeansConfig
-from lidar_obstacles.core.arrays import column_min, lowest_per_cell, points_xyz, tree_query
+from lidar_obstacles.core.arrays import (column_min, lowest_per_cell, points_xyz, thread_pools,
+                                         tree_query)
 from lidar_obstacles.core.interpolate import idw, neighbour_residual, tin
 from lidar_obstacles.errors import CloudFormatError
-
-if TYPE_CHECKING:
-    from threadpoolctl import ThreadpoolController
 
 log = logging.getLogger(__name__)
 _warned: set[str] = set()  # reasons already logged: a stream of messages warns once
@@ -152,18 +148,6 @@ def _kmeans_1d(x: np.ndarray, k: int, restarts: int, max_iter: int, tol: float,
                         centres=centres[:, None], sse=sse, n_iter=n_iter)
 
 
-@functools.cache
-def _thread_pools() -> ThreadpoolController:
-    """The process's BLAS and OpenMP thread pools, found once (scikit-learn's OpenMP runtime
-    loaded first, so that it is among them). Finding them scans every loaded library:
-    ~2.4 ms, which ``threadpool_limits`` paid on every fit (24 ms of an elbow sweep's 10
-    fits); limiting them through this controller takes ~0.02 ms."""
-    import sklearn.cluster  # noqa: F401  (loads the OpenMP runtime to be limited)
-    from threadpoolctl import ThreadpoolController
-
-    return ThreadpoolController()
-
-
 def _kmeans_nd(x: np.ndarray, k: int, restarts: int, max_iter: int, tol: float,
                rng: np.random.Generator) -> KmeansResult:
     """Several features: scikit-learn's KMeans (Cython Lloyd). A vectorised NumPy Lloyd
@@ -175,7 +159,8 @@ def _kmeans_nd(x: np.ndarray, k: int, restarts: int, max_iter: int, tol: float,
     """
     from sklearn.cluster import KMeans
 
-    with _thread_pools().limit(limits=1):
+    # (the pools found once per process, with scikit-learn's OpenMP runtime among them)
+    with thread_pools("sklearn.cluster").limit(limits=1):
         model = KMeans(n_clusters=k, init="k-means++", n_init=restarts, max_iter=max_iter,
                        tol=tol, random_state=int(rng.integers(2**31 - 1))).fit(x)
     return KmeansResult(labels=model.labels_.astype(np.int32),
