@@ -1,5 +1,5 @@
-"""numpy without its slow paths: column-wise reductions, single-threaded BLAS, and freed
-memory handed back.
+"""numpy without its slow paths: column-wise reductions, a closed-form 3 x 3 PCA,
+single-threaded BLAS (its thread pools found once), and freed memory handed back.
 
 numpy 2.4 reduces an (N, 3) array along axis 0 row by row: ``xyz.min(axis=0)`` on 50 000
 points takes ~1.8 ms, one column at a time ~0.08 ms (23 x). A cloud passes through dozens
