@@ -153,6 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",
                    help="rosbag2 storage of the output bag")
     s.add_argument("--no-dem", action="store_true", help="skip the DEM builder")
+    _skip_malformed_flag(s)
 
     s = sub.add_parser("play", help="publish a bag into the live ROS graph")
     s.add_argument("src", type=Path, metavar="IN_BAG",
@@ -178,6 +179,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--crs", default=None,
                    help="e.g. EPSG:32632 (default: the params file's export.crs, else the "
                         "bag's)")
+    _skip_malformed_flag(s)
 
     for name, what, params in (
             ("simplify", "K-means++ simplification on normals",
@@ -193,6 +195,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="PointCloud2 topic (default: the only/biggest)")
         s.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",
                        help="rosbag2 storage of an output bag")
+        _skip_malformed_flag(s)
 
     s = sub.add_parser("evaluate", help="compare the classes with the `classification` field")
     s.add_argument("src", type=Path, metavar="IN",
@@ -210,6 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--benchmark", choices=("isprs",), default=None,
                    help="run all ISPRS samples in IN with one parameter set (default: none, IN "
                         "is one input)")
+    _skip_malformed_flag(s)
 
     s = sub.add_parser("tune", help="search parameters on labelled inputs; write a params YAML")
     s.add_argument("src", type=Path, nargs="+", metavar="IN",
@@ -231,7 +235,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--objective", choices=("ground_kappa", "kappa", "total_error"),
                    default="ground_kappa",
                    help="what the search optimises (the kappas up, total_error down)")
+    _skip_malformed_flag(s)
     return p
+
+
+def _skip_malformed_flag(s: argparse.ArgumentParser) -> None:
+    s.add_argument("--skip-malformed", action="store_true",
+                   help="skip a malformed cloud of a bag and count it in the summary's "
+                        "`rejected`, as the nodes drop it (default: stop at it, one line "
+                        "naming it, exit status 2)")
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -256,19 +268,20 @@ def run(args: argparse.Namespace) -> dict:
     if args.command == "replay":
         return offline.replay(args.src, args.out, topic=args.topic,
                               params_file=args.params_file, storage=args.storage,
-                              with_dem=not args.no_dem)
+                              with_dem=not args.no_dem, skip_malformed=args.skip_malformed)
     if args.command == "play":
         return offline.play(args.src, rate=args.rate, loop=args.loop, topics=args.topics,
                             namespace=args.namespace)
     if args.command == "export-dem":
         return offline.export_dem(args.src, args.out, topic=args.topic,
-                                  params_file=args.params_file, crs=args.crs)
+                                  params_file=args.params_file, crs=args.crs,
+                                  skip_malformed=args.skip_malformed)
     if args.command in ("simplify", "features"):
         from lidar_obstacles.ros import cloud_tools
 
         tool = cloud_tools.simplify if args.command == "simplify" else cloud_tools.features
         return tool(args.src, args.out, params_file=args.params_file, topic=args.topic,
-                    storage=args.storage)
+                    storage=args.storage, skip_malformed=args.skip_malformed)
     if args.command == "evaluate":
         from lidar_obstacles import evaluate
 
@@ -284,14 +297,14 @@ def run(args: argparse.Namespace) -> dict:
             return result
         return evaluate.evaluate(args.src, params_file=args.params_file,
                                  report_dir=args.report, blocks=args.blocks, topic=args.topic,
-                                 with_dem=not args.no_dem)
+                                 with_dem=not args.no_dem, skip_malformed=args.skip_malformed)
     if args.command == "tune":
         from lidar_obstacles import tune
 
         return tune.tune(args.src, validate=args.validate, out=args.out,
                          budget_s=tune.parse_budget(args.budget), max_trials=args.trials,
                          seed=args.seed, space_file=args.space, start_file=args.start,
-                         objective=args.objective)
+                         objective=args.objective, skip_malformed=args.skip_malformed)
     if args.command == "demo":
         from lidar_obstacles.demo import run_demo
 

@@ -33,6 +33,21 @@ class OutputError(LidarObstaclesError):
     is the user's data and not replaced."""
 
 
+SKIP_MALFORMED_HINT = "--skip-malformed skips such clouds and counts them"
+
+
+def malformed_cloud(index: int, topic: str, stamp_ns: int, exc: CloudFormatError
+                    ) -> CloudFormatError:
+    """The error that stops an offline command at a cloud of a bag it cannot use (malformed,
+    or over `input.max_points`): which cloud (1-based `index` on `topic`, its header
+    stamp), why, and how to go on without it. The nodes drop such a cloud and count it;
+    offline, bad input stops the command unless the user asked to skip it (the contract:
+    bad input of any kind, a malformed cloud included, ends with one line naming it and a
+    non-zero status)."""
+    return CloudFormatError(f"cloud {index} on {topic} (stamp {stamp_ns // 10**9}."
+                            f"{stamp_ns % 10**9:09d} s): {exc} ({SKIP_MALFORMED_HINT})")
+
+
 # A number in an error message: 8, -5, 25,000,000, 1.5, 1e+15 (not the 32 of FLOAT32).
 _NUMBER = re.compile(r"(?<!\w)\d+(?:[.,]\d+)*(?:[eE][-+]?\d+)?")
 _DETAIL = re.compile(r" ?\([^()]*\)")  # an innermost (perhaps empty) parenthesis, its space

@@ -20,7 +20,7 @@ from lidar_obstacles.config import (DemBuilderConfig, NodeInputConfig, ObstacleD
                                     replace)
 from lidar_obstacles.core.classes import GROUND
 from lidar_obstacles.errors import (BagError, CloudFormatError, LasError, LidarObstaclesError,
-                                    count_reason)
+                                    count_reason, malformed_cloud)
 
 log = logging.getLogger(__name__)
 
@@ -78,15 +78,17 @@ def _from_points(points: np.ndarray, stamp: float, xyz: np.ndarray | None = None
 
 
 def load_input(path: str | Path, *, topic: str | None = None,
-               cfg: NodeInputConfig | None = None) -> LabelledInput:
+               cfg: NodeInputConfig | None = None, skip_malformed: bool = False
+               ) -> LabelledInput:
     """Read a labelled LAS/LAZ file or bag. LasError/BagError/CloudFormatError when unusable.
 
     A labelled bag's clouds are read as the detector would take them (``cfg``, default
     ObstacleDetectorConfig()): with `use_odometry`, moved into the odometry frame by the
     pose nearest in time (a cloud with none within `odometry_max_age` is skipped, as the
     node drops it); with an odometry topic, the vehicle's position comes with each cloud
-    (the clearance grid is centred on it). A malformed cloud is skipped and counted in
-    `reject_reasons`, as `replay` does."""
+    (the clearance grid is centred on it). A malformed cloud is a CloudFormatError naming
+    it, unless `skip_malformed`: then it is skipped and counted in `reject_reasons`, as
+    `replay` does."""
     cfg = cfg if cfg is not None else ObstacleDetectorConfig()
     path = Path(path)
     if path.suffix.lower() in LAS_SUFFIXES:
@@ -118,7 +120,7 @@ def load_input(path: str | Path, *, topic: str | None = None,
                 raise CloudFormatError(f"{path}: /obstacles has no 'class' field")
             kind = "replay_bag"
         else:
-            clouds = _labelled_clouds(reader, topic, cfg, rejected)
+            clouds = _labelled_clouds(reader, topic, cfg, rejected, skip_malformed)
             kind = "labelled_bag"
         crs = read_crs(reader)
     if not clouds:
@@ -127,11 +129,13 @@ def load_input(path: str | Path, *, topic: str | None = None,
 
 
 def _labelled_clouds(reader, topic: str | None, cfg: NodeInputConfig,
-                     rejected: dict[str, int]) -> list[LabelledCloud]:
+                     rejected: dict[str, int], skip_malformed: bool = False
+                     ) -> list[LabelledCloud]:
     """The clouds of a labelled bag, in bag order, prepared as the node prepares them. The
-    node drops a cloud it cannot place or parse, and so do these, counting them by reason
-    in `rejected`; one warning names the first malformed one, for the user to find it. A
-    BagError when none is left."""
+    node drops a cloud it cannot place, and so do these, counting them by reason in
+    `rejected`. A malformed cloud is a CloudFormatError naming it, unless
+    `skip_malformed`: then it is dropped and counted too, and one warning names the first
+    one, for the user to find it. A BagError when none is left."""
     from lidar_obstacles.io.bags import ODOMETRY
     from lidar_obstacles.ros.node_base import PoseBuffer
     from lidar_obstacles.ros.offline import NO_POSE
@@ -166,6 +170,8 @@ def _labelled_clouds(reader, topic: str | None, cfg: NodeInputConfig,
                            pose=pose, transform=cfg.use_odometry)
             cloud = _from_points(prep.points, stamp_ns * 1e-9, prep.xyz)
         except CloudFormatError as exc:
+            if not skip_malformed:
+                raise malformed_cloud(seen, cloud_topic, stamp_ns, exc) from None
             count_reason(rejected, str(exc))
             malformed += 1
             first = first or (f"cloud {seen} (stamp {stamp_ns // 10**9}."
@@ -285,14 +291,16 @@ def dem_comparison(xyz: np.ndarray, reference: np.ndarray, predicted: np.ndarray
 
 def evaluate(src: str | Path, *, params_file: str | Path | None = None,
              report_dir: str | Path | None = None, blocks: str = "6x6",
-             topic: str | None = None, with_dem: bool = True) -> dict:
-    """All the figures of `lidar-obstacles evaluate` for one input (JSON-ready dict)."""
+             topic: str | None = None, with_dem: bool = True,
+             skip_malformed: bool = False) -> dict:
+    """All the figures of `lidar-obstacles evaluate` for one input (JSON-ready dict). A
+    malformed cloud of a labelled bag stops it unless `skip_malformed` (`load_input`)."""
     from lidar_obstacles.core.metrics import evaluate_classes, jsonable, latency_stats
 
     if report_dir is not None:
         _check_report_folder(Path(report_dir))  # before the work, not after it
     det_cfg, dem_cfg = _configs(params_file)
-    inp = load_input(src, topic=topic, cfg=det_cfg)
+    inp = load_input(src, topic=topic, cfg=det_cfg, skip_malformed=skip_malformed)
     latencies: list[float] = []
     if inp.kind != "replay_bag":
         latencies = run_detector(inp, det_cfg, progress=True)

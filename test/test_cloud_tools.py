@@ -92,7 +92,10 @@ def test_simplify_counts_malformed_clouds_by_kind_and_keeps_the_last_error(sim_b
     from test_evaluate_cli import _cut_short
 
     _cut_short(sim_bag, tmp_path / "cut", {0, 2})
-    s = run_cli("simplify", tmp_path / "cut", tmp_path / "simple")
+    res = cli_subprocess("simplify", tmp_path / "cut", tmp_path / "simple")
+    assert res.returncode == 2 and not (tmp_path / "simple").exists()  # (by default: stop)
+    assert res.stderr.startswith("lidar-obstacles simplify: error: cloud 1 on /points (stamp ")
+    s = run_cli("simplify", tmp_path / "cut", tmp_path / "simple", "--skip-malformed")
     assert s["messages"] == 1 and s["rejected"] == 2
     assert s["reject_reasons"] == {"data has N bytes, expected row_step N * height N = N": 2}
     assert s["last_reject"].startswith("data has ") and s["last_reject"][9].isdigit()

@@ -135,13 +135,29 @@ def test_evaluate_warns_of_a_reference_of_one_class(tmp_path, caplog):
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
 
 
-def test_evaluate_skips_and_counts_a_malformed_cloud(tmp_path, caplog, capsys):
+def test_evaluate_stops_at_a_malformed_cloud_naming_it(tmp_path, capsys):
+    # the contract: bad input, a malformed cloud included, is one line and a non-zero status
+    from lidar_obstacles.cli import main
+
+    run_cli("simulate", tmp_path / "f", "--duration", "0.5", "--seed", "1")
+    _cut_short(tmp_path / "f", tmp_path / "one", {2})
+    report = tmp_path / "report"
+    assert main(["evaluate", str(tmp_path / "one"), "--no-dem", "--report", str(report)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lidar-obstacles evaluate: error: cloud 3 on /points (stamp "
+                          "1767225600.200000000 s): data has ")
+    assert err.rstrip().endswith("(--skip-malformed skips such clouds and counts them)")
+    assert len(err.strip().splitlines()) == 1
+    assert not report.exists()
+
+
+def test_evaluate_skips_and_counts_a_malformed_cloud_when_asked(tmp_path, caplog, capsys):
     # as replay does; the whole evaluation was refused, naming no message
     from lidar_obstacles.cli import main
 
     run_cli("simulate", tmp_path / "f", "--duration", "0.5", "--seed", "1")
     _cut_short(tmp_path / "f", tmp_path / "one", {2})
-    m = run_cli("evaluate", tmp_path / "one", "--no-dem")
+    m = run_cli("evaluate", tmp_path / "one", "--no-dem", "--skip-malformed")
     assert m["clouds"] == 4 and m["rejected"] == 1
     assert m["reject_reasons"] == {"data has N bytes, expected row_step N * height N = N": 1}
     (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
@@ -149,7 +165,7 @@ def test_evaluate_skips_and_counts_a_malformed_cloud(tmp_path, caplog, capsys):
                               "the first cloud 3 (stamp 1767225600.200000000 s): data has ")
     _cut_short(tmp_path / "f", tmp_path / "all", set(range(5)))
     capsys.readouterr()
-    assert main(["evaluate", str(tmp_path / "all"), "--no-dem"]) == 2
+    assert main(["evaluate", str(tmp_path / "all"), "--no-dem", "--skip-malformed"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("lidar-obstacles evaluate: error: none of the 5 clouds on /points "
                           "can be evaluated: 5 malformed, the first cloud 1 (stamp 1767225600.0")
@@ -380,7 +396,7 @@ def test_tune_on_one_input_scores_every_candidate_and_warns_when_held_out_is_wor
     than the start on the held-out inputs is written with a warning."""
     from lidar_obstacles import tune
 
-    monkeypatch.setattr(tune, "load_input", lambda path, cfg: LabelledInput(
+    monkeypatch.setattr(tune, "load_input", lambda path, cfg, skip_malformed: LabelledInput(
         Path(path).name, "las", [], None))
     # the first input: the start scores 0.9, the others far lower, all but the last
     # candidate worse than it; the held-out input prefers the start

@@ -15,6 +15,7 @@ import pytest
 
 from conftest import DATA, REPO, data_file
 from lidar_obstacles.cli import main
+from lidar_obstacles.errors import CloudFormatError
 from lidar_obstacles.io.bags import BagReader
 from lidar_obstacles.io.pointcloud2 import read_points
 from lidar_obstacles.ros import offline
@@ -291,7 +292,7 @@ def test_replay_writes_each_nodes_diagnostics_on_the_bags_clock(sim_bag, tmp_pat
             if i in (4, 7):
                 msg.data = msg.data[: len(msg.data) // (i - 2)]  # a cloud cut short
             out.write("/points", rec.stamp_ns, bytes(typestore().serialize_cdr(msg, POINTCLOUD2)))
-    summary = run_cli("replay", bad, tmp_path / "out")
+    summary = run_cli("replay", bad, tmp_path / "out", "--skip-malformed")
     assert summary["messages"] == 18 and summary["rejected"] == 2
     assert summary["reject_reasons"] == {"data has N bytes, expected row_step N * height N = N": 2}
     assert summary["last_reject"].startswith("data has ")  # the full one, of cloud 7
@@ -405,7 +406,11 @@ def test_replay_refuses_a_cloud_too_big_for_its_grids_with_the_reason(sim_bag, t
         points["z"][::2] += np.float32(1e15)
 
     bag = _changed_clouds(sim_bag, tmp_path / "apart", [keep, apart, keep])
-    summary = offline.replay(bag, tmp_path / "out")
+    with pytest.raises(CloudFormatError, match=r"^cloud 2 on /points \(stamp 1767225600\.1"
+                       r"00000000 s\): the cloud spans 1e\+15 m in z"):
+        offline.replay(bag, tmp_path / "out")  # (by default: stop, as on any bad input)
+    assert not (tmp_path / "out").exists()
+    summary = offline.replay(bag, tmp_path / "out", skip_malformed=True)
     assert summary["messages"] == 2 and summary["rejected"] == 1
     assert summary["reject_reasons"] == {"the cloud spans N m in z, more than N m": 1}
     assert summary["last_reject"].startswith("the cloud spans 1e+15 m in z")
@@ -582,6 +587,12 @@ def test_export_dem_says_why_no_cloud_could_be_used(sim_bag, tmp_path):
     params = tmp_path / "small.yaml"
     params.write_text("/**:\n  ros__parameters:\n    input.max_points: 100\n")
     res = cli_subprocess("export-dem", sim_bag, tmp_path / "dem.tif", "--params-file", params)
+    assert res.returncode == 2 and res.stderr.startswith(
+        "lidar-obstacles export-dem: error: cloud 1 on /points (stamp 1767225600.000000000 s): "
+        "cloud has ")
+    assert "points, more than input.max_points=100 (--skip-malformed" in res.stderr
+    res = cli_subprocess("export-dem", sim_bag, tmp_path / "dem.tif", "--params-file", params,
+                         "--skip-malformed")
     assert res.returncode == 2 and "20 rejected" in res.stderr
     assert "more than input.max_points" in res.stderr and "no ground" not in res.stderr
     assert not (tmp_path / "dem.tif").exists()

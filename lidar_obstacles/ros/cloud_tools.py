@@ -22,7 +22,8 @@ from scipy.spatial import cKDTree
 from lidar_obstacles.config import (CloudSimplifierConfig, FeaturesConfig, ObstacleDetectorConfig,
                                     load_params_file)
 from lidar_obstacles.core.ground import far_points
-from lidar_obstacles.errors import BagError, CloudFormatError, LasError, count_reason
+from lidar_obstacles.errors import (BagError, CloudFormatError, LasError, count_reason,
+                                    malformed_cloud)
 from lidar_obstacles.io.atomic import LAS, check_replaceable
 from lidar_obstacles.io.bags import CRS_TOPIC, POINTCLOUD2, BagReader, BagWriter
 from lidar_obstacles.ros import messages
@@ -56,9 +57,11 @@ def _check_paths(src: Path, out: Path) -> None:
 
 
 def simplify(src: Path, out: Path, *, params_file: Path | None = None,
-             topic: str | None = None, storage: str = "mcap") -> dict:
+             topic: str | None = None, storage: str = "mcap",
+             skip_malformed: bool = False) -> dict:
     """K-means++ simplification on normals (`cloud_simplifier`'s parameters, from
-    `params_file` when given) of a LAS/LAZ file or of every cloud of a bag."""
+    `params_file` when given) of a LAS/LAZ file or of every cloud of a bag (a malformed
+    cloud stops it unless `skip_malformed`: see `_bag_clouds`)."""
     from lidar_obstacles.core.simplify import simplify as simplify_points
     from lidar_obstacles.io.las import read_las, write_las_subset
 
@@ -89,16 +92,19 @@ def simplify(src: Path, out: Path, *, params_file: Path | None = None,
         return outputs[0][1], stats["points_in"], stats["points_out"]
 
     summary = _bag_clouds(src, out, topic=topic, storage=storage,
-                          out_topic="/points_simplified", keep_of=keep_of, desc="simplify")
+                          out_topic="/points_simplified", keep_of=keep_of, desc="simplify",
+                          skip_malformed=skip_malformed)
     n_in = summary["points_in"]
     summary["reduction"] = 1.0 - summary["points_out"] / n_in if n_in else 0.0
     return {**summary, "method": cfg.simplify.method, "seconds": time.perf_counter() - t0}
 
 
 def features(src: Path, out: Path, *, params_file: Path | None = None,
-             topic: str | None = None, storage: str = "mcap") -> dict:
+             topic: str | None = None, storage: str = "mcap",
+             skip_malformed: bool = False) -> dict:
     """Gaussian-map feature points (the `features.*` parameters of `obstacle_detector`,
-    from `params_file` when given) of a LAS/LAZ file or of every cloud of a bag."""
+    from `params_file` when given) of a LAS/LAZ file or of every cloud of a bag (a
+    malformed cloud stops it unless `skip_malformed`: see `_bag_clouds`)."""
     from lidar_obstacles.io.las import read_las, write_las_subset
 
     cfg = (ObstacleDetectorConfig() if params_file is None
@@ -131,7 +137,8 @@ def features(src: Path, out: Path, *, params_file: Path | None = None,
                 int(mask.sum()))
 
     summary = _bag_clouds(src, out, topic=topic, storage=storage,
-                          out_topic="/points_features", keep_of=keep_of, desc="features")
+                          out_topic="/points_features", keep_of=keep_of, desc="features",
+                          skip_malformed=skip_malformed)
     summary["share"] = summary["points_out"] / max(summary["points_in"], 1)
     return {**summary, "seconds": time.perf_counter() - t0}
 
@@ -171,12 +178,14 @@ def tiled_features(xyz: np.ndarray, *, cfg: FeaturesConfig,
 
 
 def _bag_clouds(src: Path, out: Path, *, topic: str | None, storage: str, out_topic: str,
-                keep_of: Callable[[object], tuple[object, int, int]], desc: str) -> dict:
+                keep_of: Callable[[object], tuple[object, int, int]], desc: str,
+                skip_malformed: bool = False) -> dict:
     """Run `keep_of` (message -> (output message, points in, points out)) on every cloud of
     bag `src` and write the outputs on `out_topic` of bag `out`, other topics copied.
-    Malformed clouds are counted by kind and skipped, as the nodes drop them; the latest
-    one's error is kept in full."""
-    n_in = n_out = clouds = 0
+    A malformed cloud stops the run with a CloudFormatError naming it, and `out` is not
+    written; with `skip_malformed`, malformed clouds are counted by kind and skipped, as
+    the nodes drop them, the latest one's error kept in full."""
+    n_in = n_out = clouds = seen = 0
     rejected: dict[str, int] = {}
     last_reject = None
     with BagReader(src) as reader, BagWriter(out, storage=storage) as bag:
@@ -196,9 +205,14 @@ def _bag_clouds(src: Path, out: Path, *, topic: str | None, storage: str, out_to
                         bag.write(record.topic, record.stamp_ns, raw)
                     continue
                 bar.update(1)
+                seen += 1
+                msg = reader.deserialize(record)
                 try:
-                    msg_out, a, b = keep_of(reader.deserialize(record))
+                    msg_out, a, b = keep_of(msg)
                 except CloudFormatError as exc:
+                    if not skip_malformed:
+                        stamp_ns = messages.stamp_ns_of(msg.header)
+                        raise malformed_cloud(seen, cloud_topic, stamp_ns, exc) from None
                     count_reason(rejected, str(exc))
                     last_reject = str(exc)
                     continue

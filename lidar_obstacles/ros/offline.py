@@ -20,7 +20,8 @@ import numpy as np
 
 from lidar_obstacles.config import DemBuilderConfig, ObstacleDetectorConfig
 from lidar_obstacles.core.arrays import release_free_memory, reuse_freed_memory
-from lidar_obstacles.errors import BagError, CloudFormatError, ConfigError, LasError, count_reason
+from lidar_obstacles.errors import (BagError, CloudFormatError, ConfigError, LasError, count_reason,
+                                    malformed_cloud)
 from lidar_obstacles.core.pipeline import GroundStep, ObstacleResult
 from lidar_obstacles.io.bags import (CRS_TOPIC, ODOMETRY, POINTCLOUD2, BagReader, BagWriter,
                                      TopicInfo, read_crs)
@@ -421,7 +422,8 @@ class DemSchedule:
 
 def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage | None,
                dem: DemStage | None, stats: ReplayStats, desc: str = "replay",
-               passthrough: bool = False) -> Iterator[tuple[str, int, Any]]:
+               passthrough: bool = False, skip_malformed: bool = False
+               ) -> Iterator[tuple[str, int, Any]]:
     """Feed every cloud of a bag through the stages, in bag order.
 
     Yields (topic, stamp_ns, message-or-raw-bytes) to write, and work to do later, in
@@ -431,9 +433,11 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
     process of its own while this one finds the next cloud's ground; the detector's
     halves and the DEM each keep their state (ground context; towers seen; the rolling
     DEM) and see the clouds in order, so the result is the same as one process's.
-    Otherwise the DEM work is done here. Malformed clouds are counted and skipped, as the
-    node drops them. Each stage's `/diagnostics` is due every second of the bag's time and
-    at its end (the detector's as a DetectorDiagnostics to drain).
+    Otherwise the DEM work is done here. A malformed cloud stops the run with a
+    CloudFormatError naming it (:func:`malformed_cloud`); with `skip_malformed` it is
+    counted and skipped, as the node drops it. Each stage's `/diagnostics` is due every
+    second of the bag's time and at its end (the detector's as a DetectorDiagnostics to
+    drain).
     """
     cloud_topic = reader.pointcloud_topic(topic)
     odom = _odom_topics(reader)
@@ -474,6 +478,7 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
     warned: set[int | str] = set()  # (each warning once)
     n_clouds = reader.count([cloud_topic])
     bar = _progress(None, n_clouds, desc)
+    seen = 0  # clouds read (the bar counts nothing when it is off)
     t_start = time.perf_counter()
     try:
         for record in reader.records(wanted):
@@ -489,6 +494,7 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                     yield record.topic, record.stamp_ns, raw
                 continue
             bar.update(1)
+            seen += 1
             msg = reader.deserialize(record)
             stamp_ns = messages.stamp_ns_of(msg.header)
             lo_ns = stamp_ns if lo_ns is None else min(lo_ns, stamp_ns)
@@ -529,6 +535,8 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                                                                record.stamp_ns)
                     n_points = n_points if detector is not None else dem_points
             except CloudFormatError as exc:
+                if not skip_malformed:
+                    raise malformed_cloud(seen, cloud_topic, stamp_ns, exc) from None
                 stats.rejected += 1
                 count_reason(stats.reject_reasons, str(exc))
                 stats.last_reject = str(exc)
@@ -844,8 +852,10 @@ class _BackgroundWriter:
 
 
 def replay(src: Path, out: Path, *, topic: str | None = None, params_file: Path | None = None,
-           storage: str = "mcap", with_dem: bool = True) -> dict:
-    """Run both nodes' stages over a bag and write what they would publish."""
+           storage: str = "mcap", with_dem: bool = True, skip_malformed: bool = False) -> dict:
+    """Run both nodes' stages over a bag and write what they would publish. A malformed
+    cloud stops it (CloudFormatError, no output left), unless `skip_malformed`: then it is
+    counted in the summary's `rejected` and `reject_reasons`, as the node drops it."""
     # As the CLI does, and here too for callers from Python (benchmarks, scripts): without
     # it the main process faulted every cloud's arrays in again, 38 -> 28 ms of CPU per
     # 50 000-point message (half of it system time). The forked workers inherit it.
@@ -870,7 +880,7 @@ def replay(src: Path, out: Path, *, topic: str | None = None, params_file: Path 
             try:
                 for name, stamp_ns, payload in run_stages(
                         reader, topic=topic, detector=detector, dem=dem, stats=stats,
-                        passthrough=True):
+                        passthrough=True, skip_malformed=skip_malformed):
                     if name == DEFERRED and not isinstance(payload, DetectorDiagnostics):
                         payload = workers.submit(payload, detector)
                     writer.put((name, stamp_ns, payload))
@@ -925,8 +935,10 @@ def crop_to_data(grid):
 
 
 def export_dem(src: Path, out: Path, *, topic: str | None = None,
-               params_file: Path | None = None, crs: str | None = None) -> dict:
-    """Build the DEM of a whole bag offline; write a GeoTIFF and a hillshade PNG beside it."""
+               params_file: Path | None = None, crs: str | None = None,
+               skip_malformed: bool = False) -> dict:
+    """Build the DEM of a whole bag offline; write a GeoTIFF and a hillshade PNG beside it.
+    A malformed cloud stops it unless `skip_malformed` (as `replay`)."""
     from lidar_obstacles.config import parse_crs, replace
     from lidar_obstacles.io.atomic import PNG, TIFF, check_replaceable
     from lidar_obstacles.io.geotiff import write_geotiff, write_hillshade_png
@@ -950,7 +962,7 @@ def export_dem(src: Path, out: Path, *, topic: str | None = None,
     with BagReader(src) as reader:
         bag_crs = read_crs(reader)
         for _ in run_stages(reader, topic=topic, detector=None, dem=stage, stats=stats,
-                            desc="export-dem"):
+                            desc="export-dem", skip_malformed=skip_malformed):
             pass
     if stats.messages == 0:  # (said as replay says it, not as "no ground")
         raise BagError(f"no cloud of {src} could be processed "
