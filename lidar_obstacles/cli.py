@@ -308,7 +308,8 @@ def run(args: argparse.Namespace) -> dict:
     if args.command == "demo":
         from lidar_obstacles.demo import run_demo
 
-        return run_demo(args.out, scene=args.scene, duration=args.duration, seed=args.seed)
+        return run_demo(args.out, scene=args.scene, duration=args.duration, seed=args.seed,
+                        say=lambda line: print(line, file=sys.stderr))
     raise AssertionError(args.command)  # argparse only lets known commands through
 
 
@@ -419,10 +420,15 @@ def _command(argv: list[str] | None) -> int:
     # ignores it again up to the exit).
     for stop in STOPS:
         signal.signal(stop, signal.SIG_IGN)
-    from lidar_obstacles.ros.offline import write_json
-
-    write_json(summary)
+    write_summary(summary)
     return 0
+
+
+def write_summary(summary: dict) -> None:
+    """The command's JSON summary on stdout."""
+    import json
+
+    print(json.dumps(summary, indent=2, default=str))
 
 
 def console() -> NoReturn:

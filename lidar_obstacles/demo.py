@@ -6,13 +6,17 @@ hillshade; evaluates the result against the simulator's truth with a report of p
 """
 from __future__ import annotations
 
-import sys
 from pathlib import Path
+from typing import Callable
 
 from lidar_obstacles.errors import OutputError
 
 
-def run_demo(out: Path, *, scene: str = "mixed", duration: float = 20.0, seed: int = 0) -> dict:
+def run_demo(out: Path, *, scene: str = "mixed", duration: float = 20.0, seed: int = 0,
+             say: Callable[[str], None] = lambda line: None) -> dict:
+    """Simulate, replay, export and evaluate into folder `out`; `say` is told each step and,
+    at the end, where the outputs are (the CLI prints them on stderr). Returns the summary:
+    the outputs' paths and the headline figures."""
     from lidar_obstacles.evaluate import evaluate
     from lidar_obstacles.ros import offline
 
@@ -27,13 +31,13 @@ def run_demo(out: Path, *, scene: str = "mixed", duration: float = 20.0, seed: i
     steps = [f"1/4 simulating a {duration:g} s flight over the '{scene}' scene",
              "2/4 running obstacle_detector and dem_builder on it (replay)",
              "3/4 exporting the DEM", "4/4 evaluating against the simulator's truth"]
-    print(steps[0], file=sys.stderr)
+    say(steps[0])
     sim = offline.simulate(flight, scene=scene, seed=seed, duration=duration, frame="map")
-    print(steps[1], file=sys.stderr)
+    say(steps[1])
     rep = offline.replay(flight, replayed)
-    print(steps[2], file=sys.stderr)
+    say(steps[2])
     dem = offline.export_dem(flight, dem_tif)
-    print(steps[3], file=sys.stderr)
+    say(steps[3])
     metrics = evaluate(replayed, report_dir=report)
     summary = {
         "flight_bag": str(flight), "output_bag": str(replayed), "dem_geotiff": str(dem_tif),
@@ -46,6 +50,5 @@ def run_demo(out: Path, *, scene: str = "mixed", duration: float = 20.0, seed: i
         "tower_recall": metrics["per_class"]["tower"]["producers_accuracy"],
         "wire_tower_in_ground": metrics["safety"]["obstacle_as_ground"],
     }
-    print(f"\nDemo done. Open {report / 'report.html'} for the pictures; outputs in {out}/",
-          file=sys.stderr)
+    say(f"\nDemo done. Open {report / 'report.html'} for the pictures; outputs in {out}/")
     return summary

@@ -11,6 +11,7 @@ load; the summary reports each parameter's sensitivity and the score on held-out
 """
 from __future__ import annotations
 
+import logging
 import re
 import sys
 import time
@@ -32,6 +33,8 @@ from lidar_obstacles.config import (
 from lidar_obstacles.errors import ConfigError
 from lidar_obstacles.evaluate import LabelledInput, _concat, load_input, run_detector
 from lidar_obstacles.io.atomic import YAML, atomic_write_text, check_replaceable
+
+log = logging.getLogger(__name__)
 
 EARLY_STOP_MARGIN = 0.05  # a candidate this far below the best on the first input stops
 SAFETY_PENALTY = 10.0  # score lost per unit share of wire/tower points put in ground
@@ -261,7 +264,7 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
         check["improved"] = not check["unchanged"] and after["score"] > before["score"]
         summary["validation"] = check
         if not check["improved"] and not check["unchanged"]:
-            print(f"tune: warning: the best candidate scores {check['best_score']:.4f} on the "
-                  f"held-out inputs, the start {check['start_score']:.4f}: it may fit only "
-                  f"the tuning inputs ({out} is written all the same)", file=sys.stderr)
+            log.warning("tune: warning: the best candidate scores %.4f on the held-out "
+                        "inputs, the start %.4f: it may fit only the tuning inputs (%s is "
+                        "written all the same)", check["best_score"], check["start_score"], out)
     return summary

@@ -269,12 +269,11 @@ def test_a_stop_after_the_work_is_done_does_not_fail_the_run(tmp_path):
     failed. It now ends with 0."""
     code = ("import os, signal, sys\n"
             "from lidar_obstacles import cli\n"
-            "from lidar_obstacles.ros import offline\n"
-            "write = offline.write_json\n"
+            "write = cli.write_summary\n"
             "def late(summary):\n"
             "    os.kill(os.getpid(), signal.SIGINT)\n"
             "    write(summary)\n"
-            "offline.write_json = late\n"
+            "cli.write_summary = late\n"
             f"sys.exit(cli.main(['simulate', {str(tmp_path / 'f')!r}, '--duration', '0.1',"
             " '--points', '300']))\n")
     res = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,

@@ -93,6 +93,15 @@ def test_code_is_flake8_clean():
     assert res.returncode == 0, res.stdout + res.stderr
 
 
+@pytest.mark.slow
+def test_the_ros_free_library_is_mypy_clean():
+    # the architecture's "mypy-clean core": core/ and io/ (setup.cfg's [mypy]), ~20 s cold
+    res = subprocess.run([sys.executable, "-m", "mypy", "lidar_obstacles/core",
+                          "lidar_obstacles/io"], cwd=REPO, capture_output=True, text=True,
+                         timeout=600)
+    assert res.returncode == 0, res.stdout + res.stderr
+
+
 def test_colcon_build_and_installed_node_starts(tmp_path):
     colcon = shutil.which("colcon", path=str(Path(sys.executable).parent))
     if colcon is None:

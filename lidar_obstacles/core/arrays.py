@@ -288,8 +288,8 @@ def stop_signals_held() -> Iterator[None]:
     finally:
         for s, handler in before.items():
             signal.signal(s, handler)
-        for s in dict.fromkeys(received):  # each once, in the order they came
-            signal.raise_signal(s)
+        for signum in dict.fromkeys(received):  # each once, in the order they came
+            signal.raise_signal(signum)
 
 
 def tree_query(tree: cKDTree, x: np.ndarray, **kwargs: Any) -> tuple[np.ndarray, np.ndarray]:

@@ -1435,8 +1435,8 @@ def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
             cand = np.flatnonzero(judge & ~ground)
             if rim_pass:
                 cand = windows.near(np.concatenate(added), cand) if added else cand[:0]
-            steps = [_rim_points(allp, flat, windows, cand, np.flatnonzero(np.isfinite(z_kept)),
-                                 cfg)]
+            steps: list[np.ndarray | None] = [
+                _rim_points(allp, flat, windows, cand, np.flatnonzero(np.isfinite(z_kept)), cfg)]
             if faces and rim_pass < cfg.rim_passes - 1:
                 steps.append(None)  # the face test, on the ground with these rims
             for new in steps:
@@ -1652,7 +1652,7 @@ def _order_free_sample(xyz: np.ndarray, size: int) -> np.ndarray | None:
     if n <= 2 * size or xyz.dtype not in (np.float32, np.float64):
         return None
     bits = np.uint64 if xyz.dtype == np.float64 else np.uint32
-    key = xyz[:, 1].view(bits) * _MIX_Y  # (uint64 wraps round: a hash, not a number)
+    key = np.multiply(xyz[:, 1].view(bits), _MIX_Y)  # (wraps round: a hash, not a number)
     key ^= xyz[:, 0].view(bits)
     key *= _MIX_X
     pick = np.flatnonzero(key < np.uint64(min((size << 64) // n, 2 ** 64 - 1)))

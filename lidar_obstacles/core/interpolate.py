@@ -104,7 +104,7 @@ def merge_coincident(xy: np.ndarray, z: np.ndarray, *, quantum: float = 1e-6,
     if len(first) == len(xy):
         return (xy, z) if extra is None else (xy, z, extra[ok])
     mean = [np.bincount(inverse, weights=v) / counts for v in (xy[:, 0], xy[:, 1], z)]
-    out = (np.column_stack(mean[:2]), mean[2])
+    out: tuple[np.ndarray, ...] = (np.column_stack(mean[:2]), mean[2])
     if extra is not None:
         out += (np.bincount(inverse, weights=extra[ok]) / counts,)
     return out

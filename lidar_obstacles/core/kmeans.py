@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -432,8 +433,8 @@ def kmeans_ground(xyz: np.ndarray, *, cfg: KmeansConfig, intensity: np.ndarray |
                 log.warning("kmeans ground: %s; clustering on geometric features instead",
                             reason)
             features = "geometric"
-    sweep = dict(max_k=cfg.max_k, restarts=cfg.restarts, max_iter=cfg.max_iter, tol=cfg.tol,
-                 sample_size=cfg.sample_size, rng=gen)
+    sweep: dict[str, Any] = dict(max_k=cfg.max_k, restarts=cfg.restarts, max_iter=cfg.max_iter,
+                                 tol=cfg.tol, sample_size=cfg.sample_size, rng=gen)
     if features == "two_stage":
         # Stage 1 splits the survey into compact XYZ blobs; stage 2 clusters intensity
         # inside each blob and takes its low classes, so blobs of pure roof or canopy

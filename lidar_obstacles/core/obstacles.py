@@ -666,7 +666,8 @@ def _known_wire_seeds(known: np.ndarray, pts: np.ndarray, found: np.ndarray,
     i, j = neighbour_pairs(seeds, known, KNOWN_WIRE_AXIS_REACH)
     d = known[j] - seeds[i]  # centred on the seed: survey coordinates keep their precision
     count = np.maximum(np.bincount(i, minlength=len(seeds)), 1).astype(np.float64)
-    mean = np.column_stack([np.bincount(i, d[:, a], len(seeds)) for a in range(3)])
+    # (float: weighted counts; the type stubs say a count is an integer)
+    mean: np.ndarray = np.column_stack([np.bincount(i, d[:, a], len(seeds)) for a in range(3)])
     mean /= count[:, None]
     cov = np.empty((len(seeds), 3, 3))
     for a in range(3):
@@ -744,7 +745,8 @@ def patch_area(pts: np.ndarray, labels: np.ndarray, cell: float = 1.0) -> np.nda
     roof of the same size (its footprint on the map is a thin line)."""
     n_labels = int(labels.max()) + 1
     count = np.bincount(labels, minlength=n_labels).astype(np.float64)
-    mean = np.stack([np.bincount(labels, pts[:, a], n_labels) for a in range(3)], axis=1)
+    mean: np.ndarray = np.stack([np.bincount(labels, pts[:, a], n_labels) for a in range(3)],
+                                axis=1)  # (float: weighted counts)
     mean /= np.maximum(count, 1)[:, None]
     rel = pts - mean[labels]
     cov = np.empty((n_labels, 3, 3))
@@ -1001,14 +1003,19 @@ class _WireDirections:
         self.xyz = wire_xyz
         self.voxel: np.ndarray | None = None
 
-    def __call__(self, idx: np.ndarray) -> np.ndarray:
-        """(C,) int: the direction at the wire points idx (C,) (indices into the wires)."""
+    def _voxels(self) -> np.ndarray:
+        """(W,) the voxel of each wire point, the voxels' centroids and tree made the first
+        time they are needed."""
         if self.voxel is None:
             self.centroids, self.voxel = _voxel_centroids(self.xyz, column_min(self.xyz),
                                                           WIRE_MEMORY_VOXEL)
             self.tree = search_tree(self.centroids)
             self.degree = np.full(len(self.centroids), -2)  # -2: not worked out yet
-        v = self.voxel[idx]
+        return self.voxel
+
+    def __call__(self, idx: np.ndarray) -> np.ndarray:
+        """(C,) int: the direction at the wire points idx (C,) (indices into the wires)."""
+        v = self._voxels()[idx]
         new = np.unique(v[self.degree[v] == -2])
         if len(new):
             self.degree[new] = self._directions(self.centroids[new])
@@ -1021,7 +1028,7 @@ class _WireDirections:
         if len(idx) == 0:
             return 0.0
         directed = idx[self(idx) >= 0]
-        return len(np.unique(self.voxel[directed])) * WIRE_MEMORY_VOXEL
+        return len(np.unique(self._voxels()[directed])) * WIRE_MEMORY_VOXEL
 
     def _directions(self, q: np.ndarray) -> np.ndarray:
         """(Q,) int degrees (-1: none) of the wire at the (Q, 3) points q (m): the main axis

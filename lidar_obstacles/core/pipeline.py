@@ -58,16 +58,16 @@ class RecentObjects:
         """Remember (R, width) rows of the message stamped `stamp` s; forget the old."""
         old = np.ones(len(self.rows), bool)
         if self.voxel is not None and len(rows):
-            rows, old = self._merged(rows)
+            rows, old = self._merged(rows, self.voxel)
         all_rows = np.concatenate([rows, self.rows[old]])
         all_stamps = np.concatenate([np.full(len(rows), float(stamp)), self.stamps[old]])
         keep = np.flatnonzero(all_stamps >= stamp - self.seconds)[:self.size]
         self.rows, self.stamps = all_rows[keep], all_stamps[keep]
 
-    def _merged(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(R', width) the new rows one per voxel, and (K,) bool: the old rows to keep
-        (those in no voxel of the new ones, whose flags the new take)."""
-        cells = np.floor(rows[:, :3] / self.voxel).astype(np.int64)
+    def _merged(self, rows: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+        """(R', width) the new rows one per voxel (edge `voxel` m), and (K,) bool: the old
+        rows to keep (those in no voxel of the new ones, whose flags the new take)."""
+        cells = np.floor(rows[:, :3] / voxel).astype(np.int64)
         lo, hi = column_min(cells), column_max(cells)
         span = hi - lo + 1  # numbered within the new rows' box: exact, however far out
         new_key = ((cells[:, 0] - lo[0]) * span[1] + cells[:, 1] - lo[1]) * span[2] \
@@ -80,9 +80,8 @@ class RecentObjects:
         # the old rows in the new rows' voxels: those in their box (with a voxel to spare
         # for the rounding), then by their voxels, as the new rows' were found
         near = np.flatnonzero(all_columns(
-            (self.rows[:, :3] >= (lo - 1) * self.voxel)
-            & (self.rows[:, :3] < (hi + 2) * self.voxel)))
-        c = np.floor(self.rows[near, :3] / self.voxel).astype(np.int64)
+            (self.rows[:, :3] >= (lo - 1) * voxel) & (self.rows[:, :3] < (hi + 2) * voxel)))
+        c = np.floor(self.rows[near, :3] / voxel).astype(np.int64)
         within = all_columns((c >= lo) & (c <= hi))
         inside, c = near[within], c[within] - lo
         if len(inside):
@@ -223,9 +222,9 @@ class StreamingGround:
         from lidar_obstacles.core.ground import GroundResult, classify_ground, far_points
 
         cfg = self.cfg
-        far = far_points(xyz)
+        far: np.ndarray | None = far_points(xyz)
         full = xyz
-        if far.any():
+        if far is not None and far.any():
             xyz = xyz[~far]
         else:
             far = None

@@ -277,7 +277,9 @@ class _Builder:
         z_floor = ground.min() - 1.0
         z_eave = ground.max() + wall
         z_top = z_eave + (pitch_h if roof != "flat" else 0.0)
-        local = [(1, 0, 0, hx, _R_WALL), (-1, 0, 0, hx, _R_WALL), (0, 1, 0, hy, _R_WALL),
+        # (nx, ny, nz, d, reflectance): the half-space nx x + ny y + nz z <= d
+        local: list[tuple[float, float, float, float, float]] = [
+                 (1, 0, 0, hx, _R_WALL), (-1, 0, 0, hx, _R_WALL), (0, 1, 0, hy, _R_WALL),
                  (0, -1, 0, hy, _R_WALL), (0, 0, -1, -z_floor, _R_WALL)]
         if roof == "flat":
             local.append((0, 0, 1, z_eave, roof_refl))
@@ -497,9 +499,9 @@ def _tower_members(height: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         ba = b0 + (b1 - b0) * za / body_top
         for side in (1.0, -1.0):
             tip = (0.0, side * half, za)
-            for sx in (1.0, -1.0):
-                member((sx * ba, side * ba, za), tip)
-                member((sx * ba, side * ba, za + 1.5), tip)
+            for across in (1.0, -1.0):
+                member((across * ba, side * ba, za), tip)
+                member((across * ba, side * ba, za + 1.5), tip)
             member(tip, (0.0, side * half, za - _INSULATOR), 0.12)
     for sx, sy in corners:
         member((sx * b1, sy * b1, body_top), (0.0, 0.0, height))

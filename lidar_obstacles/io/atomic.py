@@ -208,7 +208,7 @@ def _umask_round_trip() -> int:
     return mask
 
 
-def atomic_write(path: str | Path, write: Callable[[Path], None], *, kind: Kind | None
+def atomic_write(path: str | Path, write: Callable[[Path], object], *, kind: Kind | None
                  ) -> Path:
     """Call ``write(tmp)`` on a temporary path beside ``path`` (ending in the same suffix,
     for writers that choose the format by it: .laz, .png), give the file the mode open()

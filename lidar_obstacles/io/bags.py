@@ -39,7 +39,7 @@ def typestore() -> Typestore:
     return _TYPESTORE
 
 
-_TYPESTORE = None
+_TYPESTORE: Typestore | None = None
 
 
 @dataclass(frozen=True)

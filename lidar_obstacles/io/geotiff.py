@@ -120,7 +120,7 @@ def read_geotiff(path: str | Path) -> GeoTiffDem:
     import tifffile
 
     with tifffile.TiffFile(str(path)) as tif:
-        page = tif.pages[0]
+        page = tif.pages.first
         image = page.asarray().astype(np.float32)
         tags = {tag.code: tag.value for tag in page.tags.values()}
     scale = tags[MODEL_PIXEL_SCALE]

@@ -390,7 +390,7 @@ def with_xyz(points: np.ndarray, xyz: np.ndarray, *, widen: bool = False) -> np.
     if not widen or all(_field(points.dtype, n)[0] == f8 for n in _XYZ):
         out = points.copy()
     else:
-        names = sorted(points.dtype.names, key=lambda n: _field(points.dtype, n)[1])
+        names = sorted(points.dtype.names or (), key=lambda n: _field(points.dtype, n)[1])
         formats = [f8 if n in _XYZ else _field(points.dtype, n)[0] for n in names]
         out = np.empty(points.shape, dtype=np.dtype({"names": names, "formats": formats}))
         for name in names:
@@ -499,7 +499,7 @@ def append_fields(
     out_dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets,
                           "itemsize": -(-offset // align) * align})
     fields_from_dtype(out_dtype)  # rejects types a PointField cannot carry, naming them
-    padded = sum(out_dtype.fields[n][0].itemsize for n in names) < out_dtype.itemsize
+    padded = sum(out_dtype[n].itemsize for n in names) < out_dtype.itemsize
     # (zeros between the fields: a message's bytes do not depend on what memory held)
     out = (np.zeros if padded else np.empty)(points.shape, dtype=out_dtype)
 

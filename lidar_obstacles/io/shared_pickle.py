@@ -23,7 +23,7 @@ import pickle
 import secrets
 from dataclasses import dataclass
 from multiprocessing.shared_memory import SharedMemory
-from typing import Any
+from typing import Any, cast
 
 # The start of the name of every block this package makes (`/dev/shm/NAME` on Linux): the
 # process that imported this module, whose forked workers (`replay`'s) keep it, so the
@@ -165,8 +165,9 @@ def to_shared(obj: Any, *, pool: BlockPool | None = None,
 
 def _fill(block: SharedMemory, raws: list[memoryview]) -> None:
     offset = 0
+    buf = cast(memoryview, block.buf)  # (None only once closed)
     for raw in raws:
-        block.buf[offset:offset + raw.nbytes] = raw
+        buf[offset:offset + raw.nbytes] = raw
         offset += raw.nbytes
 
 
@@ -190,8 +191,9 @@ def from_shared(shared: SharedPickle, *, pool: BlockPool | None = None) -> Any:
 
 def _copied(block: SharedMemory, sizes: tuple[int, ...]) -> list[bytearray]:
     buffers, offset = [], 0
+    buf = cast(memoryview, block.buf)  # (None only once closed)
     for size in sizes:
-        buffers.append(bytearray(block.buf[offset:offset + size]))
+        buffers.append(bytearray(buf[offset:offset + size]))
         offset += size
     return buffers
 

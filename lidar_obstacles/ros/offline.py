@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import collections
 import importlib
-import json
+import logging
 import pickle
 import sys
 import time
@@ -31,6 +31,8 @@ from lidar_obstacles.ros import messages
 from lidar_obstacles.ros.stages import (DemStage, DetectorStage, DetectorWork, Pose,
                                         coarse_xyz_warning, moving_frame_warning,
                                         pose_of_odometry)
+
+log = logging.getLogger(__name__)
 
 STRING = "std_msgs/msg/String"
 
@@ -652,9 +654,11 @@ def _work_in_worker(shared_job: SharedPickle) -> SharedPickle:
     job = from_shared(shared_job)
     into = attach(shared_job.block) if shared_job.kept and shared_job.block else None
     if isinstance(job, GroundStep):
-        assert _WORKER_DETECTOR is not None, "no detector in this worker"
+        if _WORKER_DETECTOR is None:
+            raise RuntimeError("a cloud's obstacles sent to a worker started without them")
         return to_shared(_WORKER_DETECTOR.classify(job), into=into)
-    assert _WORKER_SCHEDULE is not None, "no DEM in this worker"
+    if _WORKER_SCHEDULE is None:
+        raise RuntimeError("DEM work sent to a worker started without a DEM")
     done = _WORKER_SCHEDULE(job)
     return to_shared(done._replace(items=[(t, ns, pickle.PickleBuffer(raw))
                                           for t, ns, raw in done.items]), into=into)
@@ -954,9 +958,9 @@ def export_dem(src: Path, out: Path, *, topic: str | None = None,
     # offline the DEM covers the whole survey, unless the params file sets `dem.extent`
     _, dem_cfg = load_configs(params_file, replace(DemBuilderConfig(), {"dem.extent": 0.0}))
     if dem_cfg.dem.extent > 0:  # (the shipped config/dem_builder.yaml sets the live node's)
-        print(f"export-dem: warning: dem.extent is {dem_cfg.dem.extent:g} m in {params_file}: "
-              "the DEM keeps only that square around the last position; set it to 0 for "
-              "the whole survey", file=sys.stderr)
+        log.warning("export-dem: warning: dem.extent is %g m in %s: the DEM keeps only that "
+                    "square around the last position; set it to 0 for the whole survey",
+                    dem_cfg.dem.extent, params_file)
     stats = ReplayStats()
     stage = DemStage(dem_cfg)
     with BagReader(src) as reader:
@@ -1057,8 +1061,8 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
         try:
             names = [p.topic_name for p in pubs.values()]
             if not _subscriptions_settled(node, names, quiet_s=settle_s, timeout_s=wait_s):
-                print(f"play: no steady subscriber on {', '.join(names)} after {wait_s:g} s; "
-                      "playing anyway", file=sys.stderr)
+                log.warning("play: no steady subscriber on %s after %g s; playing anyway",
+                            ", ".join(names), wait_s)
             while True:
                 t0_wall = time.monotonic()
                 t0_bag = None
@@ -1083,15 +1087,11 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
                 unacked = [t for t in unacked
                            if not pubs[t].wait_for_all_acked(Duration(seconds=0.1))]
             if unacked:
-                print(f"play: {', '.join(unacked)} not acknowledged by every subscriber after "
-                      f"{wait_s:g} s", file=sys.stderr)
+                log.warning("play: %s not acknowledged by every subscriber after %g s",
+                            ", ".join(unacked), wait_s)
         except KeyboardInterrupt as exc:  # (SIGTERM too, from the CLI: same type)
             raise type(exc)(f"published: {sent}") from None
         finally:
             node.destroy_node()
             rclpy.try_shutdown()
     return {"published": sent}
-
-
-def write_json(data: dict) -> None:
-    print(json.dumps(data, indent=2, default=str))

@@ -60,7 +60,8 @@ _ABOUT = {
                     "dem (PointCloud2), dem_image (Image), dem_info (MapMetaData), "
                     "/diagnostics; service save_dem (Trigger: a GeoTIFF)"),
     "cloud_simplifier": ("every cloud simplified by K-means++ on its normals",
-                         "points (PointCloud2)", "points_simplified (PointCloud2), "
+                         "points (PointCloud2), odom (Odometry, with use_odometry)",
+                         "points_simplified (PointCloud2), "
                          "/diagnostics"),
 }
 
