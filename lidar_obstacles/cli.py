@@ -82,6 +82,8 @@ class _Parser(argparse.ArgumentParser):
     """A usage mistake is bad input like any other: one line and exit status 2 (argparse
     would print the whole usage first). Defaults are shown in --help."""
 
+    commands: dict[str, _Parser]  # the top parser's: each command's own
+
     def __init__(self, *args, **kwargs) -> None:
         kwargs.setdefault("formatter_class", _HelpFormatter)
         super().__init__(*args, **kwargs)
@@ -94,13 +96,13 @@ class _Parser(argparse.ArgumentParser):
 _DEFAULT_PARAMS = "(default: none, the defaults in config/*.yaml)"
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser() -> _Parser:
     from lidar_obstacles import __version__
 
     p = _Parser(prog="lidar-obstacles", description=__doc__.splitlines()[0])
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    p.commands = sub.choices  # type: ignore[attr-defined]  (name -> its parser)
+    p.commands = sub.choices  # (name -> its parser)
 
     s = sub.add_parser("demo", help="simulate a UAV flight and run the whole job on it")
     s.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")

@@ -205,7 +205,7 @@ def run_detector(inp: LabelledInput, cfg: ObstacleDetectorConfig, *,
     from lidar_obstacles.core.pipeline import ObstacleDetector
 
     det = ObstacleDetector(cfg)
-    latencies = []
+    latencies: list[float] = []
     clouds = inp.clouds
     if progress:
         from tqdm import tqdm
@@ -242,7 +242,8 @@ def _concat_all(inp: LabelledInput
     ref = np.concatenate([c.reference for c in inp.clouds])[near]
     pred = np.concatenate([c.predicted for c in inp.clouds])[near]  # type: ignore[misc]
     hags = [c.height_above_ground for c in inp.clouds]
-    hag = None if any(h is None for h in hags) else np.concatenate(hags)[near]
+    hag = (None if any(h is None for h in hags)
+           else np.concatenate([h for h in hags if h is not None])[near])
     return xyz, ref, pred, hag
 
 
@@ -275,10 +276,11 @@ def dem_comparison(xyz: np.ndarray, reference: np.ndarray, predicted: np.ndarray
     keep = np.ones(len(xyz), bool)
     keep[held] = False
     lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
-    ref_dem = build_dem(xyz[ref_ground & keep], cfg=cfg, bounds=(lo, hi))
-    pred_dem = build_dem(xyz[pred_ground & keep], cfg=cfg, bounds=(lo, hi))
+    box = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))  # xmin, ymin, xmax, ymax
+    ref_dem = build_dem(xyz[ref_ground & keep], cfg=cfg, bounds=box)
+    pred_dem = build_dem(xyz[pred_ground & keep], cfg=cfg, bounds=box)
     inside = build_dem(xyz, cfg=replace(cfg, {"dem.fill_distance": 0.0}),
-                       bounds=(lo, hi)).count > 0
+                       bounds=box).count > 0
     out: dict[str, Any] = {"grid": grid_errors(np.where(inside, ref_dem.elevation, np.nan),
                                                pred_dem.elevation),
                            "reference_dem": ref_dem, "predicted_dem": pred_dem}

@@ -233,7 +233,7 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
     except OSError as exc:
         raise ConfigError(f"cannot write the params file {out}: {exc}") from None
     complete = [t for t in trials if not t["stopped_early"]]
-    sensitivity = {}
+    sensitivity: dict[str, dict[str, Any]] = {}
     for d in dims:
         vals = [t["params"][d.name] for t in complete]
         ys = [t["score"] for t in complete]

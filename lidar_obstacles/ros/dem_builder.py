@@ -82,7 +82,8 @@ class DemBuilderNode(PipelineNode):
         a big grid held it for seconds (0.66 s at `dem.resolution` 0.25, 12 s at 0.05), and
         with it the parameter services, the diagnostics and the odometry a waiting cloud
         needs."""
-        answered, answer = threading.Event(), []
+        answered = threading.Event()
+        answer: list[tuple[bool, str]] = []  # (success, message), from the worker
         self._saves.put((answered, answer))
         self.wake()
         while not answered.wait(0.1):

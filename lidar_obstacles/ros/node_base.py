@@ -139,6 +139,8 @@ class PipelineNode(Node):
 
     config_cls: type
     out_key: str = "points_out"  # the stage's stats entry counted as points out
+    stage: Any  # made by the subclass: DetectorStage, DemStage or SimplifierStage
+    pubs: dict[str, Any]  # its publishers, by topic
 
     def __init__(self, name: str) -> None:
         super().__init__(name)
@@ -151,7 +153,7 @@ class PipelineNode(Node):
         self.poses = PoseBuffer()
         self.create_subscription(Odometry, "odom", self._on_odometry,
                                  QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT))
-        self._points_sub = None
+        self._points_sub: Any = None
         self._points_reliability: ReliabilityPolicy | None = None
         self._update_points_subscription()
         # On the steady clock, not the node's: with use_sim_time and no /clock yet (a bag
@@ -467,7 +469,7 @@ def _check_params_files(argv: list[str], cls: type | None) -> None:
     from lidar_obstacles.config import NODE_CONFIGS, load_params_file
 
     name = next((k for k, c in NODE_CONFIGS.items() if c is cls), None)
-    if name is None:
+    if name is None or cls is None:
         return
     namespace = "/"
     for rule in _ros_options(argv, "-r"):

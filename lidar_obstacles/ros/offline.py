@@ -62,7 +62,7 @@ def _serialize(msg: Any) -> bytes:
     return serialize_message(msg)
 
 
-def _progress(iterable: Iterable, total: int | None, desc: str, unit: str = "msg"):
+def _progress(iterable: Iterable | None, total: int | None, desc: str, unit: str = "msg"):
     from tqdm import tqdm
 
     # disable=None: a bar on a terminal, silence in logs and CI.
@@ -190,7 +190,7 @@ def las2bag(src: Path, out: Path, *, slice_seconds: float = 0.1, tile_size: floa
     fields.append(("point_id", "<u4"))
     rec = np.empty(len(pts), dtype=fields)
     for name, _ in fields[:-1]:
-        rec[name] = pts[name] if name in pts.dtype.names else 0
+        rec[name] = pts[name] if name in (pts.dtype.names or ()) else 0
     rec["point_id"] = np.arange(len(pts), dtype=np.uint32)
     groups, stamps, sliced_by = _las_slices(pts, has_gps=las.has_gps_time,
                                             slice_seconds=slice_seconds, tile_size=tile_size,
@@ -314,7 +314,7 @@ class Done(NamedTuple):
     not pickle); for a cloud's obstacles, the detector's seconds on it and its obstacle
     points."""
 
-    items: list[tuple[str, int, bytes]]
+    items: list[tuple[str, int, Any]]  # bytes, or a PickleBuffer of them crossing processes
     seconds: float | None = None
     points_out: int = 0
 
@@ -410,7 +410,7 @@ class DemSchedule:
     def __call__(self, work: DemWork) -> Done:
         """A cloud's ground from the detector (or, without ground, the end of the bag)."""
         self.reject_reasons = work.reject_reasons
-        if work.ground_xyz is None:
+        if work.ground_xyz is None or work.ground_hag is None:
             items = self.finish(work.stamp_ns, work.record_ns)
         else:
             stats = self.stage.add_ground(work.ground_xyz, work.ground_hag,
