@@ -407,6 +407,14 @@ def _command(argv: list[str] | None) -> int:
     except LidarObstaclesError as exc:
         print(f"lidar-obstacles {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        # The machine's, not the input's: a full disk, no permission, a read-only or vanished
+        # folder. One line too (the outputs are temporary until complete: none is left).
+        if isinstance(exc, BrokenPipeError) or exc.strerror is None:
+            raise  # (a reader of stdout gone: main's; no strerror: not the system's word)
+        where = f": {exc.filename}" if exc.filename else ""
+        print(f"lidar-obstacles {args.command}: error: {exc.strerror}{where}", file=sys.stderr)
+        return 2
     except BaseException as exc:
         terminated = _stopped(exc)
         if terminated is None:

@@ -290,3 +290,20 @@ def test_main_leaves_the_callers_signal_handlers_as_they_were(tmp_path):
     before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
     assert main(["simulate", str(tmp_path / "f"), "--duration", "0.1", "--points", "300"]) == 0
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+
+
+def test_a_full_disk_is_one_line_and_leaves_no_output(tmp_path, monkeypatch, capsys):
+    """ENOSPC while a bag was written gave a traceback and status 1; the other errors of
+    the machine's (no permission, a read-only folder) went the same way."""
+    import errno
+
+    from lidar_obstacles.io.bags import BagWriter
+
+    def full(self, *args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp_path / "f"))
+
+    monkeypatch.setattr(BagWriter, "write", full)
+    assert main(["simulate", str(tmp_path / "f"), "--duration", "0.2", "--points", "300"]) == 2
+    err = capsys.readouterr().err
+    assert err == f"lidar-obstacles simulate: error: No space left on device: {tmp_path / 'f'}\n"
+    assert list(tmp_path.iterdir()) == []  # the partial bag removed
