@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import multiprocessing
+import os
 import pickle
 from pathlib import Path
 
@@ -125,3 +126,25 @@ def test_pool_blocks_are_reused_and_carry_the_result_back(cloud):
     assert bigger.block != shared.block and len(blocks() - before) == 2
     pool.close()
     assert blocks() == before
+
+
+def test_blocks_of_a_run_killed_outright_are_swept_by_the_next(tmp_path, monkeypatch):
+    """A replay killed with SIGKILL left its blocks in /dev/shm (9 MB for one run, still
+    there hours later); the next run's first pool unlinks those of processes gone, and
+    leaves those of live ones (a run beside it) and names not ours."""
+    import subprocess
+    import sys
+
+    from lidar_obstacles.io import shared_pickle
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    names = [f"lidar_obstacles_{dead.pid}_0badf00d", f"lidar_obstacles_{os.getppid()}_0badf00d",
+             "psm_0badf00d", f"lidar_obstacles_{dead.pid}"]
+    for name in names:
+        (tmp_path / name).write_bytes(b"x" * 10)
+    monkeypatch.setattr(shared_pickle, "SHM_DIR", str(tmp_path))
+    monkeypatch.setattr(shared_pickle, "_SWEPT", False)
+    shared_pickle.BlockPool().close()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(names[1:])
+    assert not shared_pickle.sweep_orphans()  # (once per process: the pool swept them)

@@ -31,6 +31,41 @@ from typing import Any, cast
 NAME_PREFIX = f"lidar_obstacles_{os.getpid()}_"
 
 
+SHM_DIR = "/dev/shm"  # where Linux keeps the blocks, by name
+_SWEPT = False  # (once per process)
+
+
+def sweep_orphans() -> list[str]:
+    """Unlink the blocks of runs that are gone: those named NAME_PREFIX-style after a
+    process that no longer exists. A run killed outright (`kill -9`, the OOM killer)
+    leaves its blocks behind (megabytes each, until the machine restarts); this is done
+    by the next run's first pool. A block of a live process, or of another user's, is left
+    be. Returns the names unlinked; nothing on a system without SHM_DIR."""
+    gone: list[str] = []
+    try:
+        names = os.listdir(SHM_DIR)
+    except OSError:
+        return gone
+    for name in names:
+        head, _, rest = name.partition("lidar_obstacles_")
+        pid_text, sep, _ = rest.partition("_")
+        if head or not sep or not pid_text.isdigit() or int(pid_text) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid_text), 0)
+            continue  # alive (the pid may be another program's now: its blocks stay)
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            continue  # another user's process, alive
+        try:
+            os.unlink(os.path.join(SHM_DIR, name))
+            gone.append(name)
+        except OSError:
+            pass  # (another user's block, or another run swept it first)
+    return gone
+
+
 def _create(size: int) -> SharedMemory:
     """A new block of `size` bytes named NAME_PREFIX + 8 random hex digits. OSError when
     there is no shared memory to be had."""
@@ -61,6 +96,10 @@ class BlockPool:
     pages: a new block's were faulted in and zeroed on every write."""
 
     def __init__(self, max_free: int = 16) -> None:
+        global _SWEPT
+        if not _SWEPT:  # the blocks earlier runs killed outright left behind
+            _SWEPT = True
+            sweep_orphans()
         self._blocks: dict[str, SharedMemory] = {}
         self._free: list[SharedMemory] = []
         self._max_free = max_free
