@@ -6,12 +6,13 @@ import pytest
 from scipy.spatial import Delaunay
 
 from lidar_obstacles.config import ObstacleDetectorConfig, replace
-from lidar_obstacles.core.context import GroundContext
+from lidar_obstacles.core.context import GroundContext, frame_jump
 from lidar_obstacles.core.ground import (GroundSurface, HybridSettings, _dense_band, _locate,
                                          _ground_density, _Inpainter, _median_trend, _Opening,
                                          _slope,
                                          _steep_objects, _window_extreme, classify_ground,
                                          inpaint, morphological_ground, tin_densification)
+from lidar_obstacles.core.pipeline import ObstacleDetector
 from lidar_obstacles.core.ransac import fit_plane_eigen, ransac_plane, required_trials
 
 METHODS = ("hybrid", "tin", "ransac")
@@ -530,3 +531,38 @@ def test_the_grid_placement_moves_the_cells():
     # each cell but the last holds a low point
     assert np.mean(np.abs(surface[(0.5, 0.0)]) < 1e-9) > 0.95
     np.testing.assert_allclose(surface[(0.0, 0.5)], surface[(0.0, 0.0)], atol=1e-12)
+
+
+def _stepped_flight(jump: float, rng) -> tuple[list[np.ndarray], ObstacleDetector]:
+    """Ground labels of 20 overlapping 60 x 40 m strips of rough flat ground, 4 m apart,
+    the frame's height `jump` m higher from the 11th on, and the detector."""
+    det = ObstacleDetector(ObstacleDetectorConfig())
+    labels = []
+    for i in range(20):
+        xy = rng.uniform([4.0 * i, 0.0], [4.0 * i + 60.0, 40.0], (12000, 2))
+        z = 0.05 * rng.standard_normal(len(xy)) + (jump if i >= 10 else 0.0)
+        labels.append(det.ground_step(np.column_stack([xy, z]), stamp=0.1 * i).ground)
+    return labels, det
+
+
+def test_a_jump_of_the_frames_height_moves_the_remembered_ground_with_it():
+    """A GNSS/INS height reset between two clouds (+0.5 m) left the remembered ground under
+    the new one: on a simulated flight ~14 500 ground points a message were roofs for
+    1.5 s. The context now follows the jump."""
+    for jump in (0.5, 2.0, -2.0):
+        labels, det = _stepped_flight(jump, np.random.default_rng(3))
+        assert det.ground.frame_jumps == 1, jump
+        assert min(lab.mean() for lab in labels) > 0.99, (jump, [lab.mean() for lab in labels])
+    labels, det = _stepped_flight(0.1, np.random.default_rng(3))  # within the tolerance
+    assert det.ground.frame_jumps == 0 and min(lab.mean() for lab in labels) > 0.99
+
+
+def test_frame_jump_is_the_median_over_shared_cells_and_needs_enough_of_them():
+    rng = np.random.default_rng(0)
+    centres = np.array([[i + 0.5, j + 0.5, 0.0] for i in range(10) for j in range(10)])
+    cloud = np.column_stack([rng.uniform(0, 10, (3000, 2)), np.full(3000, 0.7)])
+    cloud[:300, 2] = 9.0  # roofs over a tenth of it: the median does not mind
+    assert frame_jump(cloud, centres, 1.0) == pytest.approx(0.7)
+    assert frame_jump(cloud - [0, 0, 0.6], centres, 1.0) == 0.0  # 0.1 m: noise, not a jump
+    assert frame_jump(cloud + [20.0, 0, 0], centres, 1.0) == 0.0  # no shared cell
+    assert frame_jump(cloud[:20], centres, 1.0) == 0.0  # too few cells shared

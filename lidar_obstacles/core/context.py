@@ -53,6 +53,10 @@ class GroundContext:
             return None
         return np.column_stack([xy[keep], self._z[keep]])
 
+    def shift(self, dz: float) -> None:
+        """Move the remembered ground up by dz metres (:func:`frame_jump`)."""
+        self._z = self._z + dz
+
     def update(self, ground_xyz: np.ndarray, stamp: float,
                cloud_xy: np.ndarray | None = None) -> None:
         """Merge a message's ground (N, 3) and forget what is too far or too old.
@@ -103,6 +107,44 @@ class GroundContext:
             keep = np.ones(len(z), bool)
         keep &= t >= stamp - self.cfg.seconds
         self._key, self._z, self._t = key[keep], z[keep], t[keep]
+
+
+# A cloud whose ground stands this far above or below the remembered ground, in the median
+# of the cells both hold, comes in a frame that jumped (a GNSS/INS height reset, an odometry
+# correction): on simulated flights the median is within 0.05 m, message after message.
+JUMP_TOLERANCE = 0.15  # m
+JUMP_MIN_CELLS = 30  # shared cells, at least, for a median worth trusting
+
+
+def frame_jump(cloud_xyz: np.ndarray, context_xyz: np.ndarray, cell: float) -> float:
+    """Metres to add to the remembered ground `context_xyz` (M, 3) (cell centres on `cell` m
+    cells, from :meth:`GroundContext.points_near`) to meet a new cloud `cloud_xyz` (N, 3)
+    m: the median, over the cells both hold, of the cloud's lowest point in the cell less
+    the remembered height; 0 when it is within JUMP_TOLERANCE or fewer than
+    JUMP_MIN_CELLS cells are shared.
+
+    Why: a step of the frame's height between two clouds (+0.5 m) left the remembered
+    ground under the new one, which the filter took as ground: the new cloud's ground
+    stood above it, and for 1.5 s 14 500 ground points a message were roofs (ground
+    kappa 0.98 -> 0.85 on a simulated flight; +2 m 0.78)."""
+    def keys(xy: np.ndarray) -> np.ndarray:
+        i = np.floor(xy[:, 0] / cell).astype(np.int64)
+        j = np.floor(xy[:, 1] / cell).astype(np.int64)
+        return (i + _OFFSET) * _SPAN + (j + _OFFSET)
+
+    if len(context_xyz) < JUMP_MIN_CELLS or len(cloud_xyz) < JUMP_MIN_CELLS:
+        return 0.0
+    remembered = keys(context_xyz[:, :2])  # (sorted: the context's keys, in order)
+    key = keys(cloud_xyz[:, :2])
+    pos = np.minimum(np.searchsorted(remembered, key), len(remembered) - 1)
+    shared = remembered[pos] == key
+    lowest = np.full(len(remembered), np.inf)
+    np.minimum.at(lowest, pos[shared], cloud_xyz[shared, 2])
+    held = np.isfinite(lowest)
+    if np.count_nonzero(held) < JUMP_MIN_CELLS:
+        return 0.0
+    jump = float(np.median(lowest[held] - context_xyz[held, 2]))
+    return jump if abs(jump) > JUMP_TOLERANCE else 0.0
 
 
 def _inside(xy: np.ndarray, cloud_xy: np.ndarray, cell: float, margin: float) -> np.ndarray:

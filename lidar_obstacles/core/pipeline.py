@@ -192,6 +192,7 @@ class StreamingGround:
         self.cfg = cfg
         self.context = GroundContext(cfg.context)
         self.rng = np.random.default_rng(cfg.ransac.seed)
+        self.frame_jumps = 0  # clouds whose frame's height jumped (`context.frame_jump`)
 
     def reconfigure(self, cfg: ObstacleDetectorConfig | DemBuilderConfig) -> None:
         """New parameters; the context and the random stream are kept unless their own
@@ -219,6 +220,7 @@ class StreamingGround:
         it had a neighbour at 0 m (never isolated noise), doubled the ground density
         the band narrows with, and made a single ground point per cell two."""
         from lidar_obstacles.core.arrays import distinct_points
+        from lidar_obstacles.core.context import frame_jump
         from lidar_obstacles.core.ground import GroundResult, classify_ground, far_points
 
         cfg = self.cfg
@@ -235,6 +237,12 @@ class StreamingGround:
             xyz = xyz[distinct[0]]
         lo, hi = column_min(xyz[:, :2]), column_max(xyz[:, :2])
         context_xyz = self.context.points_near(lo, hi, stamp)
+        if context_xyz is not None:  # the frame's height jumped: the context follows it
+            jump = frame_jump(xyz, context_xyz, cfg.context.cell)
+            if jump:
+                context_xyz[:, 2] += jump
+                self.context.shift(jump)
+                self.frame_jumps += 1
         t1 = time.perf_counter()
         g = classify_ground(xyz, tiling=cfg.tiling, ground=cfg.ground, tin=cfg.tin,
                             ransac=cfg.ransac, context_xyz=context_xyz, rng=self.rng)
