@@ -799,16 +799,38 @@ def ros_own(name: str) -> bool:
     return name in ROS_PARAMETERS or name.startswith("qos_overrides.")
 
 
+def section_reaches(key: str, full_name: str) -> bool:
+    """Whether rcl gives a params file's section `key` to the node `full_name`: the key
+    is a full name (a leading / implied) in which `*` stands for one token and `**` for
+    any number of them."""
+    pattern, tokens = key.strip("/").split("/"), full_name.strip("/").split("/")
+
+    def match(i: int, j: int) -> bool:
+        if i == len(pattern):
+            return j == len(tokens)
+        if pattern[i] == "**":
+            return any(match(i + 1, k) for k in range(j, len(tokens) + 1))
+        return (j < len(tokens) and pattern[i] in ("*", tokens[j])) and match(i + 1, j + 1)
+    return match(0, 0)
+
+
 def load_params_file(path: str | Path, cls: type[T], node_name: str, *,
-                     base: T | None = None) -> T:
+                     base: T | None = None, full_name: str | None = None) -> T:
     """Read a ROS 2 params YAML (``/**:``, ``<node>:`` or ``/**/<node>:`` with
     ``ros__parameters``) over `base` (default: the schema's defaults).
 
+    The sections read are those rcl gives the node `full_name` (default ``/<node_name>``:
+    the root namespace, where the offline commands run the nodes' stages), as
+    `section_reaches` matches them; the others (another vehicle's ``/uav1/<node>:``) are
+    neither applied nor checked. A file that names the node only in sections that do not
+    reach it is a ConfigError: rcl would give the node nothing of them without a word.
     Nested sections and dotted keys are both accepted; rclpy's own parameters
     (`ros_own`) are left to it. Raises ConfigError for a missing file, bad YAML, unknown
     parameters or invalid values.
     """
     base = cls() if base is None else base
+    full_name = full_name or "/" + node_name
+    namespace = full_name.rsplit("/", 1)[0]  # ("" for the root namespace)
     path = Path(path)
     data = read_yaml_file(path, "params file")
     if data is None:
@@ -817,10 +839,15 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str, *,
         raise ConfigError(f"params file {path}: expected a mapping at the top")
     updates: dict[str, Any] = {}
     ours = False  # a section for any node of this package
+    named, reached = [], False  # the sections keyed by this node's name; one reaches it
     for key, value in data.items():
         key_s = str(key).lstrip("/")
-        matches = key_s in ("**", node_name, "*") or key_s.endswith("/" + node_name)
-        ours |= key_s in ("**", "*") or key_s.rsplit("/", 1)[-1] in NODE_CONFIGS
+        node = key_s.rsplit("/", 1)[-1]
+        matches = section_reaches(key_s, full_name)
+        ours |= matches or key_s in ("**", "*") or node in NODE_CONFIGS
+        if node == node_name:
+            named.append(str(key))
+            reached |= matches
         if isinstance(value, Mapping) and "ros__parameters" in value:
             params = value["ros__parameters"] or {}
             if not isinstance(params, Mapping):
@@ -830,7 +857,8 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str, *,
                 flat = {k: v for k, v in _flatten_mapping(params).items() if not ros_own(k)}
             except ConfigError as exc:
                 raise ConfigError(f"params file {path}: {exc}") from None
-            _check_node_section(path, key_s.rsplit("/", 1)[-1], flat)
+            if section_reaches(key_s, f"{namespace}/{node}"):  # (that node, beside this one)
+                _check_node_section(path, node, flat)
             if matches:  # (a later section overrides an earlier one, as in ROS)
                 updates.update(flat)
         else:
@@ -840,6 +868,11 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str, *,
     if data and not ours:
         raise ConfigError(f"params file {path}: no section for {', '.join(NODE_CONFIGS)} "
                           f"or /** (found '{next(iter(data))}')")
+    if named and not reached:  # (another vehicle's sections beside one of its own are fine)
+        where = full_name if namespace else f"{full_name} in the root namespace"
+        raise ConfigError(f"params file {path}: section '{named[0]}' does not reach the node "
+                          f"{where} (rcl matches the whole name): key it "
+                          f"'{full_name if namespace else node_name}' or '/**/{node_name}'")
     known = {p.name for p in params_of(cls)}
     # A shared file may carry the other node's parameters; only names no node knows are errors.
     all_known = {p.name for c in NODE_CONFIGS.values() for p in params_of(c)}

@@ -121,13 +121,13 @@ def test_params_file_forms(tmp_path):
         load_params_file(typo, ObstacleDetectorConfig, "obstacle_detector")
     shared = tmp_path / "shared.yaml"
     shared.write_text("flight_stack:\n  ros__parameters:\n    rate: 5\n"
-                      "/uav1/obstacle_detector:\n  ros__parameters:\n    tiling.size: 30.0\n")
+                      "/**/obstacle_detector:\n  ros__parameters:\n    tiling.size: 30.0\n")
     assert load_params_file(shared, ObstacleDetectorConfig, "obstacle_detector").tiling.size == 30
     # rclpy's own parameters are rclpy's: launch's use_sim_time under /**, and the outputs'
     # qos_overrides as `ros2 param dump` writes them (both stopped the nodes: "unknown")
     ros = tmp_path / "ros.yaml"
     ros.write_text("/**:\n  ros__parameters:\n    use_sim_time: true\n"
-                   "/uav1/obstacle_detector:\n  ros__parameters:\n    tiling.size: 31.0\n"
+                   "/**/obstacle_detector:\n  ros__parameters:\n    tiling.size: 31.0\n"
                    "    start_type_description_service: true\n    qos_overrides:\n"
                    "      /uav1/clearance:\n        publisher:\n          depth: 3\n")
     assert load_params_file(ros, ObstacleDetectorConfig, "obstacle_detector").tiling.size == 31
@@ -195,6 +195,82 @@ def test_a_node_section_with_another_nodes_parameter_is_an_error(tmp_path):
     shared.write_text("/**:\n  ros__parameters:\n    dem.resolution: 0.5\n    tiling.size: 40.0\n")
     assert load_params_file(shared, DemBuilderConfig, "dem_builder").dem.resolution == 0.5
     assert load_params_file(shared, ObstacleDetectorConfig, "obstacle_detector").tiling.size == 40
+
+
+MULTI = ("/uav1/obstacle_detector:\n  ros__parameters:\n    ground.cell: 1.5\n{uav1}"
+         "/uav2/obstacle_detector:\n  ros__parameters:\n    ground.cell: 2.0\n")
+
+
+@pytest.mark.parametrize("uav1", ["", "    ground.method: magic\n", "    dem.resolution: 0.5\n",
+                                  "    tiling.sise: 30.0\n"])
+def test_a_node_reads_only_the_sections_of_a_multi_vehicle_file_that_reach_it(tmp_path, uav1):
+    """One section per vehicle: /uav1's section stopped the node under /uav2 ("does not
+    reach the node"), and a bad value there did too. Each node reads the sections rcl
+    gives it, and only those are checked."""
+    params = tmp_path / "multi.yaml"
+    params.write_text(MULTI.format(uav1=uav1))
+    cfg = load_params_file(params, ObstacleDetectorConfig, "obstacle_detector",
+                           full_name="/uav2/obstacle_detector")
+    assert (cfg.ground.cell, cfg.ground.method) == (2.0, "hybrid")
+    params.write_text(MULTI.format(uav1=uav1) + "/**/obstacle_detector:\n  ros__parameters:\n"
+                      "    tiling.size: 30.0\n/*/*:\n  ros__parameters:\n    ground.slope: 0.3\n")
+    cfg = load_params_file(params, ObstacleDetectorConfig, "obstacle_detector",
+                           full_name="/uav2/obstacle_detector")
+    assert (cfg.ground.cell, cfg.tiling.size, cfg.ground.slope) == (2.0, 30.0, 0.3)
+    # the root node (the offline commands') takes /**/obstacle_detector, not /*/* nor /uav2's
+    cfg = load_params_file(params, ObstacleDetectorConfig, "obstacle_detector")
+    assert (cfg.ground.cell, cfg.tiling.size, cfg.ground.slope) == (1.0, 30.0, 0.2)
+
+
+def test_offline_commands_read_a_params_file_as_a_node_in_the_root_namespace(tmp_path):
+    """`evaluate` ran ransac for a file holding only `/uav1/obstacle_detector:` (a node in
+    the root namespace is given nothing of it); now that is one line naming the section and
+    what reaches the node, and a section that reaches it beside /uav1's is what counts."""
+    only = tmp_path / "uav1.yaml"
+    only.write_text("/uav1/obstacle_detector:\n  ros__parameters:\n    ground.method: ransac\n")
+    with pytest.raises(ConfigError) as info:
+        load_params_file(only, ObstacleDetectorConfig, "obstacle_detector")
+    assert str(info.value) == (
+        f"params file {only}: section '/uav1/obstacle_detector' does not reach the node "
+        "/obstacle_detector in the root namespace (rcl matches the whole name): key it "
+        "'obstacle_detector' or '/**/obstacle_detector'")
+    # dem_builder (replay reads the file for both) is not named: its defaults, no word
+    assert load_params_file(only, DemBuilderConfig, "dem_builder") == DemBuilderConfig()
+    both = tmp_path / "both.yaml"
+    for root in ("obstacle_detector", "/obstacle_detector", "/**/obstacle_detector"):
+        both.write_text(f"{root}:\n  ros__parameters:\n    ground.method: tin\n"
+                        "/uav1/obstacle_detector:\n  ros__parameters:\n    ground.method: magic\n"
+                        "    dem.resolution: 0.5\n")
+        assert load_params_file(both, ObstacleDetectorConfig, "obstacle_detector") \
+            .ground.method == "tin", root
+    # named only where it is not reached: a `/**` beside it (launch's use_sim_time) or the
+    # other vehicles' sections do not make it reach
+    multi = tmp_path / "multi.yaml"
+    for text in (MULTI.format(uav1=""),
+                 "/**:\n  ros__parameters:\n    use_sim_time: true\n" + only.read_text()):
+        multi.write_text(text)
+        with pytest.raises(ConfigError, match="section '/uav1/obstacle_detector' does not "
+                           "reach the node /obstacle_detector in the root namespace"):
+            load_params_file(multi, ObstacleDetectorConfig, "obstacle_detector")
+
+
+def test_evaluate_says_in_one_line_that_a_vehicles_section_does_not_reach_it(tmp_path):
+    import subprocess
+    import sys
+
+    from conftest import data_file
+
+    laz = data_file("isprs/samp11-utm.laz")
+    params = tmp_path / "uav1.yaml"
+    params.write_text("/uav1/obstacle_detector:\n  ros__parameters:\n    ground.method: ransac\n")
+    res = subprocess.run([sys.executable, "-m", "lidar_obstacles.cli", "evaluate", str(laz),
+                          "--params-file", str(params), "--no-dem"],
+                         cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert (res.returncode, res.stdout) == (2, "")
+    assert res.stderr == (f"lidar-obstacles evaluate: error: params file {params}: section "
+                          "'/uav1/obstacle_detector' does not reach the node /obstacle_detector "
+                          "in the root namespace (rcl matches the whole name): key it "
+                          "'obstacle_detector' or '/**/obstacle_detector'\n")
 
 
 def test_a_clearance_grid_too_many_cells_a_side_is_refused():

@@ -6,6 +6,7 @@ import re
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -119,3 +120,79 @@ def test_help_prints_the_topics_and_parameters_without_starting_the_node(name):
     assert "subscribes: points (PointCloud2)" in res.stdout
     listed = re.findall(r"^  ([\w.]+) = ", res.stdout, re.MULTILINE)
     assert listed == [info.name for info in params_of(NODE_CONFIGS[name])]
+
+
+MULTI = ("/uav1/obstacle_detector:\n  ros__parameters:\n    ground.cell: 1.5\n{uav1}"
+         "/uav2/obstacle_detector:\n  ros__parameters:\n    ground.cell: 2.0\n")
+
+
+def _parameter_of_a_started_node(params: Path, namespace: str, name: str,
+                                 timeout: float = 60.0) -> tuple[float | None, str]:
+    """Start obstacle_detector under `namespace` with the params file and ask it for the
+    value of the double parameter `name`: (the value, None if it never answered; its log)."""
+    import time
+
+    import rclpy
+    from rcl_interfaces.srv import GetParameters
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    proc = subprocess.Popen([sys.executable, "-m", NODES["obstacle_detector"], "--ros-args",
+                             "-r", f"__ns:={namespace}", "--params-file", str(params)],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    context = rclpy.Context()
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+    probe = rclpy.create_node("node_start_probe", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(probe)
+    value = None
+    try:
+        client = probe.create_client(GetParameters,
+                                     f"{namespace}/obstacle_detector/get_parameters")
+        deadline = time.monotonic() + timeout
+        while value is None and proc.poll() is None and time.monotonic() < deadline:
+            if not client.wait_for_service(timeout_sec=0.5):
+                continue
+            # asked again every 5 s: a request sent as the service is discovered can be lost
+            future = client.call_async(GetParameters.Request(names=[name]))
+            executor.spin_until_future_complete(future, timeout_sec=5.0)
+            if future.done():
+                value = future.result().values[0].double_value
+    finally:
+        executor.shutdown()
+        probe.destroy_node()
+        rclpy.try_shutdown(context=context)
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+        try:
+            log = proc.communicate(timeout=20)[0]
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            log = proc.communicate()[0]
+    return value, log
+
+
+@pytest.mark.parametrize("uav1", ["", "    ground.method: magic\n", "    ground.cell: -1.0\n"
+                                  "    dem.resolution: 0.5\n    tiling.sise: 30.0\n"])
+def test_a_node_takes_its_own_section_of_a_params_file_with_one_per_vehicle(tmp_path, uav1):
+    """A params file of one section per vehicle, given to the node under /uav2: it exited 2,
+    "section '/uav1/obstacle_detector' does not reach the node /uav2/obstacle_detector",
+    and a bad value in /uav1's section stopped it too. Now it runs with /uav2's value."""
+    params = tmp_path / "multi.yaml"
+    params.write_text(MULTI.format(uav1=uav1))
+    value, log = _parameter_of_a_started_node(params, "/uav2", "ground.cell")
+    assert value == 2.0, log
+    assert "error" not in log and "Traceback" not in log, log
+
+
+def test_a_node_named_only_in_other_vehicles_sections_is_refused_in_one_line(tmp_path):
+    # what the check is for: rcl would give the node none of it, without a word
+    params = tmp_path / "multi.yaml"
+    params.write_text(MULTI.format(uav1=""))
+    proc = subprocess.run([sys.executable, "-m", NODES["obstacle_detector"], "--ros-args",
+                           "-r", "__ns:=/uav3", "--params-file", str(params)],
+                          cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert (proc.returncode, proc.stderr) == (2, (
+        f"obstacle_detector: error: params file {params}: section '/uav1/obstacle_detector' "
+        "does not reach the node /uav3/obstacle_detector (rcl matches the whole name): key it "
+        "'/uav3/obstacle_detector' or '/**/obstacle_detector'\n"))

@@ -462,10 +462,10 @@ def _missing_params_file(argv: list[str]) -> str | None:
 
 def _check_params_files(argv: list[str], cls: type | None) -> None:
     """Read each --params-file of `argv` as `replay` and `evaluate` read it, for node
-    config `cls`: ConfigError for what rcl takes silently or says in lines of its own (a
-    section none of our nodes has, `obstacle_detektor:`; another node's parameter out of
-    its range; bad YAML). Under a remapped node name (-r __node:=NAME) the file's
-    sections are that name's."""
+    config `cls` under its namespace (-r __ns:=): ConfigError for what rcl takes silently
+    or says in lines of its own (a section none of our nodes has, `obstacle_detektor:`;
+    another node's parameter out of its range; bad YAML). Under a remapped node name
+    (-r __node:=NAME) the file's sections are that name's."""
     from lidar_obstacles.config import NODE_CONFIGS, load_params_file
 
     name = next((k for k, c in NODE_CONFIGS.items() if c is cls), None)
@@ -479,40 +479,11 @@ def _check_params_files(argv: list[str], cls: type | None) -> None:
             namespace = "/" + rule.split(":=", 1)[1].strip("/")
     full_name = namespace.rstrip("/") + "/" + name
     for path in _ros_options(argv, "--params-file"):
-        load_params_file(path, cls, name)
-        _check_sections_apply(path, name, full_name)
-
-
-def _check_sections_apply(path: str, name: str, full_name: str) -> None:
-    """ConfigError when a section of the params file at `path` is meant for this node
-    (keyed by its name) but rcl will not give it to the node `full_name`: rcl matches a
-    section's key against the whole name, so `obstacle_detector:` is the node in the root
-    namespace only, and under `-r __ns:=/uav1` the node ran on its defaults without a
-    word. `/**/obstacle_detector` or `/uav1/obstacle_detector` reach it."""
-    from lidar_obstacles.config import read_yaml_file
-
-    data = read_yaml_file(path, "params file")
-    for key in data if isinstance(data, dict) else ():
-        tokens = str(key).strip("/").split("/")
-        if tokens[-1] == name and not _rcl_name_matches(str(key), full_name):
-            raise ConfigError(f"params file {path}: section '{key}' does not reach the node "
-                              f"{full_name} (rcl matches the whole name): key it "
-                              f"'{full_name}' or '/**/{name}'")
-
-
-def _rcl_name_matches(key: str, full_name: str) -> bool:
-    """Whether rcl gives a params file's section `key` to the node `full_name`: the key
-    is a full name (a leading / implied) in which `*` stands for one token and `**` for
-    any number of them."""
-    pattern, tokens = key.strip("/").split("/"), full_name.strip("/").split("/")
-
-    def match(i: int, j: int) -> bool:
-        if i == len(pattern):
-            return j == len(tokens)
-        if pattern[i] == "**":
-            return any(match(i + 1, k) for k in range(j, len(tokens) + 1))
-        return (j < len(tokens) and pattern[i] in ("*", tokens[j])) and match(i + 1, j + 1)
-    return match(0, 0)
+        # Only the sections rcl gives the node `full_name` are read and checked (a file of
+        # one section per vehicle: /uav1's is not /uav2's business); a file that keys this
+        # node only in sections that do not reach it (`obstacle_detector:` under
+        # `-r __ns:=/uav1`, where the node ran on its defaults without a word) is refused.
+        load_params_file(path, cls, name, full_name=full_name)
 
 
 def node_executor(factory: Callable[[], Node]) -> Executor:
@@ -522,6 +493,22 @@ def node_executor(factory: Callable[[], Node]) -> Executor:
     if getattr(factory, "services_wait", False):
         return MultiThreadedExecutor(num_threads=2)
     return SingleThreadedExecutor()
+
+
+def _finish_callbacks(executor: Executor) -> None:
+    """Let the callbacks a MultiThreadedExecutor has handed to its threads finish, before
+    `shutdown()` destroys the guard condition they signal when done. Jazzy's rclpy (7.1)
+    neither waits for them there nor closes its threads (ros2/rclpy#1309, backported later
+    as #1670): a handler that ran after it (one whose mutually exclusive callback group was
+    busy) raised "cannot use Destroyable because destruction was requested", printed at
+    exit as "The following exception was never retrieved" on every stop of dem_builder.
+    The spin loop has ended on this thread, so nothing more is handed over (the race of
+    ros2/rclpy#1724 needs spin on another thread)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = getattr(executor, "_executor", None)  # (rclpy's private pool; a newer rclpy's
+    if isinstance(pool, ThreadPoolExecutor):  # shutdown has closed it: this is then a no-op)
+        pool.shutdown(wait=True)
 
 
 def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
@@ -574,6 +561,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
         pass
     finally:
         stop.unwatch()
+        _finish_callbacks(executor)
         executor.shutdown()
         if node is not None:
             node.destroy_node()
