@@ -21,13 +21,6 @@ from lidar_obstacles.errors import ConfigError, LidarObstaclesError  # (imports 
 SCENES = ("mixed", "corridor", "urban", "forest")
 
 
-def _positive(text: str) -> float:
-    value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
-    return value
-
-
 def _between(low: float, high: float, kind: type = float):
     """An argparse type: a number of `kind` in [low, high] (a rate of 1e-300 overflows a
     timer, a tile of 1e-300 m is no tile)."""
@@ -107,7 +100,7 @@ def build_parser() -> _Parser:
     s = sub.add_parser("demo", help="simulate a UAV flight and run the whole job on it")
     s.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
     s.add_argument("--scene", choices=SCENES, default="mixed", help="simulated scene")
-    s.add_argument("--duration", type=_positive, default=20.0, help="flight seconds")
+    s.add_argument("--duration", type=_between(1e-3, 1e6), default=20.0, help="flight seconds")
     s.add_argument("--seed", type=int, default=0, help="random seed of the scene and flight")
 
     s = sub.add_parser("simulate", help="write a labelled synthetic UAV flight bag")
@@ -115,7 +108,8 @@ def build_parser() -> _Parser:
                    help="the bag to write (a folder; mcap unless --storage sqlite3)")
     s.add_argument("--seed", type=int, default=0, help="random seed of the scene and flight")
     s.add_argument("--scene", choices=SCENES, default="mixed", help="simulated scene")
-    s.add_argument("--duration", type=_positive, default=20.0, help="seconds of flight")
+    s.add_argument("--duration", type=_between(1e-3, 1e6), default=20.0,
+                   help="seconds of flight")
     s.add_argument("--frame", choices=("map", "sensor"), default="map",
                    help="clouds in the map frame, or in the sensor frame (use odometry)")
     s.add_argument("--rate", type=_between(0.01, 1000.0), default=10.0,
@@ -168,6 +162,11 @@ def build_parser() -> _Parser:
     s.add_argument("--namespace", type=_namespace, default="",
                    help="publish under this namespace, e.g. /uav1 (default: none, the bag's "
                         "topic names)")
+    s.add_argument("--clock", nargs="?", type=_between(0.1, 1000.0), const=40.0, default=None,
+                   metavar="HZ",
+                   help="publish the bag's time on /clock, HZ times a second (40 when not "
+                        "given) and at each message, for nodes with use_sim_time (as ros2 "
+                        "bag play --clock; put it after IN_BAG) (default: none, no /clock)")
 
     s = sub.add_parser("export-dem", help="build the DEM of a bag and write a GeoTIFF")
     s.add_argument("src", type=Path, metavar="IN_BAG",
@@ -273,7 +272,7 @@ def run(args: argparse.Namespace) -> dict:
                               with_dem=not args.no_dem, skip_malformed=args.skip_malformed)
     if args.command == "play":
         return offline.play(args.src, rate=args.rate, loop=args.loop, topics=args.topics,
-                            namespace=args.namespace)
+                            namespace=args.namespace, clock_hz=args.clock)
     if args.command == "export-dem":
         return offline.export_dem(args.src, args.out, topic=args.topic,
                                   params_file=args.params_file, crs=args.crs,

@@ -307,3 +307,16 @@ def test_a_full_disk_is_one_line_and_leaves_no_output(tmp_path, monkeypatch, cap
     err = capsys.readouterr().err
     assert err == f"lidar-obstacles simulate: error: No space left on device: {tmp_path / 'f'}\n"
     assert list(tmp_path.iterdir()) == []  # the partial bag removed
+
+
+def test_las2bag_refuses_an_output_named_as_a_las_file(tmp_path, capsys):
+    """`las2bag x.laz out.las` wrote a bag folder named out.las, which `evaluate` then
+    refused as "not a LAS file, a folder"."""
+    from conftest import data_file
+
+    out = tmp_path / "out.las"
+    assert main(["las2bag", str(data_file("isprs/samp71-utm.laz")), str(out)]) == 2
+    assert capsys.readouterr().err == (
+        f"lidar-obstacles las2bag: error: OUT_BAG {out} is named as a LAS/LAZ file, but "
+        "las2bag writes a bag (a folder): name it without the suffix\n")
+    assert not out.exists()

@@ -209,3 +209,38 @@ def test_bad_input_is_one_line_and_exit_2(args, expected, tmp_path):
     lines = [x for x in proc.stderr.splitlines() if x.strip()]
     assert len(lines) == 1 and expected in lines[0], proc.stderr
     assert not any(p.name.startswith(".out") for p in tmp_path.iterdir())
+
+
+class _Bar:
+    """A progress bar that records what it is told."""
+
+    def __init__(self, iterable, total, desc, unit="msg"):
+        self.total, self.desc, self.unit, self.n, self.postfix = total, desc, unit, 0, []
+
+    def update(self, n=1):
+        self.n += n
+
+    def set_postfix_str(self, text, refresh=True):
+        self.postfix.append(text)
+
+    def close(self):
+        pass
+
+
+def test_long_survey_commands_show_progress_inside_a_tile_and_a_step(tmp_path, monkeypatch):
+    """`features` of a 50 m survey sat at "0/1 tile" for 19 s, `simplify` of a corridor
+    tile showed no bar for 18 s: the bars now count points (margins included) and name
+    the step under way."""
+    from lidar_obstacles.ros import cloud_tools
+
+    bars: list[_Bar] = []
+    monkeypatch.setattr(cloud_tools, "_progress", lambda *a, **k: bars.append(_Bar(*a, **k))
+                        or bars[-1])
+    src = data_file("isprs/samp71-utm.laz")
+    run_cli("features", src, tmp_path / "f.laz")
+    (bar,) = bars
+    assert (bar.desc, bar.unit) == ("features", "pt") and bar.n == bar.total >= 7000
+    run_cli("simplify", src, tmp_path / "s.laz")
+    bar = bars[-1]
+    assert (bar.desc, bar.n, bar.total) == ("simplify", 4, 4)
+    assert bar.postfix == ["normals", "k-means", "selection", "validation"]

@@ -102,3 +102,103 @@ def test_play_loop_plays_the_bag_again_until_ctrl_c(ros_node, tmp_path):
     stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in got]
     assert len(set(stamps)) == held
     assert stamps[:2 * held] == stamps[:held] * 2
+
+
+def _play_to_the_end(node, proc: subprocess.Popen, timeout: float = 120) -> tuple[str, str]:
+    """Spin `node` (its subscribers acknowledge what `play` sends) until `play` exits; its
+    (stdout, stderr). Killed if it has not ended within `timeout`."""
+    try:
+        deadline = time.monotonic() + timeout
+        while proc.poll() is None and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.05)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc.communicate(timeout=30)
+
+
+@pytest.mark.slow
+def test_play_clock_publishes_the_bags_time_on_clock(ros_node, tmp_path):
+    # Nothing published /clock: a node with use_sim_time never saw its time advance. It is
+    # /clock whatever the namespace (as ros2 bag play's), best effort as rclpy's
+    # TimeSource subscribes it, and holds the bag's times: at the first record's while the
+    # subscribers settle, then running with the flight, never back without --loop.
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+
+    from lidar_obstacles.io.bags import BagReader
+    from lidar_obstacles.ros import offline
+
+    bag, ns = tmp_path / "bag", "/contract_play_clock"
+    offline.simulate(bag, scene="mixed", seed=1, duration=1.0, frame="map",
+                     points_per_frame=1000)
+    with BagReader(bag) as reader:
+        stamps = [r.stamp_ns for r in reader.records()]
+    clocks: list = []
+    subs = [ros_node.create_subscription(
+                Clock, "/clock", clocks.append,
+                QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)),
+            ros_node.create_subscription(  # (a subscriber: `play` waits less for one)
+                PointCloud2, f"{ns}/points", lambda msg: None,
+                QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))]
+    try:
+        out, err = _play_to_the_end(ros_node,
+                                    _cli("play", bag, "--namespace", ns, "--clock", "100"))
+    finally:
+        for sub in subs:
+            ros_node.destroy_subscription(sub)
+    assert json.loads(out) == {"published": len(stamps)}, err
+    times = [c.clock.sec * 10**9 + c.clock.nanosec for c in clocks]
+    assert len(times) > 50, len(times)
+    assert times == sorted(times)
+    assert stamps[0] <= times[0] and times[-1] <= stamps[-1], (times[0], times[-1], stamps)
+    # it ran with the flight: 0.9 s of the bag's time at 100 Hz
+    assert times[-1] - times[0] > 0.8 * (stamps[-1] - stamps[0]), (times[0], times[-1])
+    assert len(set(times)) > 30, len(set(times))
+
+
+@pytest.mark.slow
+def test_dem_builder_on_sim_time_publishes_a_dem_while_play_clock_plays(ros_node, tmp_path):
+    # The reviewer's case: `dem_builder` with use_sim_time:=true (the launch file's
+    # argument for replayed bags) never published a DEM from `play`, nor did anything say
+    # why; its publish timer runs on the node's clock, /clock's.
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from test_live_nodes import NS, _spin_until, _start, _stop
+
+    from lidar_obstacles.io.bags import BagReader
+    from lidar_obstacles.ros import offline
+
+    bag = tmp_path / "flight"
+    offline.simulate(bag, scene="mixed", seed=5, duration=2.5, frame="map",
+                     points_per_frame=10_000)
+    with BagReader(bag) as reader:
+        stamps = [r.stamp_ns for r in reader.records()]
+    dems: list = []
+    sub = ros_node.create_subscription(
+        PointCloud2, f"{NS}/dem", dems.append,
+        QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                   durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    dem = _start("lidar_obstacles.scripts.dem_builder", "-p", "use_sim_time:=true",
+                 "-p", "dem.publish_rate:=2.0")
+    try:
+        # up: subscribed to its clouds, and to /clock (use_sim_time)
+        assert _spin_until(ros_node, lambda: ros_node.count_subscribers(f"{NS}/points") > 0
+                           and ros_node.count_subscribers("/clock") > 0, 60)
+        # without --clock: its time stands still, no DEM, and `play` says why, once
+        out, err = _play_to_the_end(
+            ros_node, _cli("play", bag, "--namespace", NS, "--topics", "/points", "--rate", "5"))
+        assert json.loads(out) == {"published": len(stamps) // 2}, err
+        assert err.count("use --clock") == 1 and f"{NS}/dem_builder subscribed to /clock" in err
+        _spin_until(ros_node, lambda: bool(dems), 1)
+        assert not dems
+        # with it: the DEM, of the flight's clouds
+        out, err = _play_to_the_end(ros_node, _cli("play", bag, "--namespace", NS, "--clock"))
+        assert json.loads(out) == {"published": len(stamps)}, err
+        assert "use --clock" not in err
+        assert _spin_until(ros_node, lambda: bool(dems), 20)
+        assert dems[-1].height > 1 and stamps[0] <= dems[-1].header.stamp.sec * 10**9 \
+            + dems[-1].header.stamp.nanosec <= stamps[-1]
+    finally:
+        ros_node.destroy_subscription(sub)
+        rc, log = _stop(dem)
+    assert rc == 0, log[-3000:]

@@ -796,3 +796,22 @@ def test_sigterm_during_replay_leaves_nothing_behind(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f"]  # no bag, no partial one
     left = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True)
     assert left.stdout.strip() == "", "worker processes left running"
+
+
+def test_a_cloud_with_an_unset_stamp_leaves_the_bags_span_as_recorded(sim_bag, tmp_path):
+    """One cloud of a bag stamped 0 (unset) in its header made its span 70 years: the
+    summary said bag_seconds 2.2e9 and 2e9 x real time. The span is the bag's own times."""
+    from lidar_obstacles.io.bags import POINTCLOUD2, BagWriter, typestore
+
+    bag = tmp_path / "unset"
+    with BagReader(sim_bag) as reader, BagWriter(bag) as out:
+        out.add_topic("/points", POINTCLOUD2)
+        for i, rec in enumerate(reader.records(["/points"])):
+            msg = reader.deserialize(rec)
+            if i == 3:
+                msg.header.stamp.sec, msg.header.stamp.nanosec = 0, 0
+            out.write("/points", rec.stamp_ns, bytes(typestore().serialize_cdr(msg, POINTCLOUD2)))
+    summary = offline.replay(bag, tmp_path / "out", with_dem=False)
+    assert summary["messages"] == 20
+    assert summary["bag_seconds"] == pytest.approx(2.0)  # 20 clouds at 10 Hz
+    assert summary["real_time_factor"] < 1000

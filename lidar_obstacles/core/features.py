@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -108,12 +109,15 @@ class FeatureResult:
 
 
 def gaussian_map_features(xyz: np.ndarray, *, cfg: FeaturesConfig,
-                          rng: np.random.Generator | None = None) -> FeatureResult:
+                          rng: np.random.Generator | None = None,
+                          progress: Callable[[int], None] | None = None) -> FeatureResult:
     """Feature points of a cloud by the Gaussian map of neighbour triangles + K-means.
 
     xyz: (N, 3) float, metres. cfg: FeaturesConfig (neighbours, max_clusters, plane_angle
     in degrees, min_silhouette, restarts, method, reference). rng: the K-means++ seeding;
     default np.random.default_rng(cfg.seed); the same rng state gives the same result.
+    progress: told the number of points done after each chunk of them (a progress bar's
+    `update`).
 
     Raises CloudFormatError when xyz is not (N, 3) or holds NaN / inf. Fewer than
     neighbours + 1 points: no features (every point clusters 0).
@@ -171,6 +175,8 @@ def gaussian_map_features(xyz: np.ndarray, *, cfg: FeaturesConfig,
             codes[cand] = _count_clusters(normals[cand], valid[cand], cfg, rng)
         clusters[start:stop][todo] = codes
         timings["kmeans"] += time.perf_counter() - t1
+        if progress is not None:
+            progress(stop - start)
 
     timings["total"] = time.perf_counter() - t_start
     feature = (clusters >= 2) & (clusters <= cfg.max_clusters)

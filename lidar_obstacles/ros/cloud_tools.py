@@ -62,6 +62,7 @@ def simplify(src: Path, out: Path, *, params_file: Path | None = None,
     """K-means++ simplification on normals (`cloud_simplifier`'s parameters, from
     `params_file` when given) of a LAS/LAZ file or of every cloud of a bag (a malformed
     cloud stops it unless `skip_malformed`: see `_bag_clouds`)."""
+    from lidar_obstacles.core.simplify import SIMPLIFY_STEPS
     from lidar_obstacles.core.simplify import simplify as simplify_points
     from lidar_obstacles.io.las import read_las, write_las_subset
 
@@ -75,10 +76,23 @@ def simplify(src: Path, out: Path, *, params_file: Path | None = None,
         names = las.points.dtype.names or ()
         # Offline, the TIN raster correlation of the result with the input is worth its
         # second or so: it is the paper's measure of what the simplification kept.
-        result = simplify_points(
-            las.xyz, cfg=dataclasses.replace(cfg.simplify, validate=True),
-            return_number=las.points["return_number"] if "return_number" in names else None,
-            rng=np.random.default_rng(cfg.simplify.seed))
+        bar = _progress(None, len(SIMPLIFY_STEPS), "simplify", unit="step")
+        started: list[str] = []
+
+        def progress(name: str) -> None:  # the bar: steps done, and the one under way
+            bar.set_postfix_str(name, refresh=not started)
+            if started:
+                bar.update(1)
+            started.append(name)
+
+        try:
+            result = simplify_points(
+                las.xyz, cfg=dataclasses.replace(cfg.simplify, validate=True),
+                return_number=las.points["return_number"] if "return_number" in names else None,
+                rng=np.random.default_rng(cfg.simplify.seed), progress=progress)
+            bar.update(len(SIMPLIFY_STEPS) - bar.n)
+        finally:
+            bar.close()
         kept = write_las_subset(src, result.keep, out)
         return {"output": str(out), "points_in": n, "points_out": kept,
                 "reduction": 1.0 - kept / n if n else 0.0, "method": cfg.simplify.method,
@@ -163,16 +177,25 @@ def tiled_features(xyz: np.ndarray, *, cfg: FeaturesConfig,
     cuts = np.flatnonzero(np.diff(key[order])) + 1
     found_here = np.zeros(len(xyz), bool)
     tree = cKDTree(xyz[:, :2])
-    for tile in _progress(np.split(order, cuts), len(cuts) + 1, "features", unit="tile"):
+    tiles = []
+    for tile in np.split(order, cuts):
         tlo = lo + ij[tile[0]] * FEATURE_TILE - FEATURE_MARGIN
         thi = tlo + FEATURE_TILE + 2 * FEATURE_MARGIN
         centre, half = (tlo + thi) / 2, (thi - tlo) / 2
         # the tile and its margin: a square query (Chebyshev radius) on the map positions
         near = np.asarray(tree.query_ball_point(centre, half[0], p=np.inf), dtype=np.int64)
-        inside = np.zeros(len(xyz), bool)
-        inside[tile] = True
-        found = gaussian_map_features(xyz[near], cfg=cfg, rng=rng).feature
-        found_here[near[found & inside[near]]] = True
+        tiles.append((tile, near))
+    # by points (the margins' included), not tiles: a 50 m survey is one tile of ~20 s
+    bar = _progress(None, sum(len(near) for _, near in tiles), "features", unit="pt")
+    try:
+        for tile, near in tiles:
+            inside = np.zeros(len(xyz), bool)
+            inside[tile] = True
+            found = gaussian_map_features(xyz[near], cfg=cfg, rng=rng,
+                                          progress=bar.update).feature
+            found_here[near[found & inside[near]]] = True
+    finally:
+        bar.close()
     feature[near_cloud] = found_here
     return feature
 

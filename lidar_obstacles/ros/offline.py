@@ -179,6 +179,9 @@ def las2bag(src: Path, out: Path, *, slice_seconds: float = 0.1, tile_size: floa
     """
     from lidar_obstacles.io.las import read_las
 
+    if Path(out).suffix.lower() in (".las", ".laz"):  # (said before the file is read)
+        raise ConfigError(f"OUT_BAG {out} is named as a LAS/LAZ file, but las2bag writes a "
+                          "bag (a folder): name it without the suffix")
     las = read_las(src)
     pts = las.points
     if slice_seconds <= 0 or (tile_size is not None and tile_size <= 0) or strip_width <= 0:
@@ -475,7 +478,7 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                 dropped_reported)
             dropped_reported = messages.dropped(counts)
 
-    # the stamps the bag spans: a bag's stamps may go back (its duration came out negative)
+    # the times the bag spans: they may go back (its duration came out negative)
     lo_ns = hi_ns = last_ns = None
     warned: set[int | str] = set()  # (each warning once)
     n_clouds = reader.count([cloud_topic])
@@ -499,8 +502,10 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
             seen += 1
             msg = reader.deserialize(record)
             stamp_ns = messages.stamp_ns_of(msg.header)
-            lo_ns = stamp_ns if lo_ns is None else min(lo_ns, stamp_ns)
-            hi_ns = stamp_ns if hi_ns is None else max(hi_ns, stamp_ns)
+            # the recording's span, by the bag's own times: a header stamp may be unset (0),
+            # which made a 5-cloud bag 70 years long and the replay 2e9 x real time
+            lo_ns = record.stamp_ns if lo_ns is None else min(lo_ns, record.stamp_ns)
+            hi_ns = record.stamp_ns if hi_ns is None else max(hi_ns, record.stamp_ns)
             last_ns = stamp_ns
             stamps.append(stamp_ns * 1e-9)
             pose = poses.nearest(stamp_ns, max_age)
@@ -1014,14 +1019,88 @@ def _subscriptions_settled(node, topics: list[str], *, quiet_s: float, timeout_s
     return False
 
 
+class _BagClock:
+    """`/clock` of `play --clock`: the bag's time (its records' receive time, as `ros2 bag
+    play --clock` gives), every 1/hz s of wall time from a thread and at each message
+    played, so that nodes with `use_sim_time` run on it.
+
+    It holds `start_ns` until a pass starts (`run`), then runs at `rate` from the pass's
+    first record, never past the record that is due next (`until_ns`): a message played
+    late holds the clock back, so no node's time passes a message not yet sent. A new
+    pass (`--loop`) jumps back to its first record, as rosbag2's does.
+    """
+
+    def __init__(self, node, hz: float, rate: float, start_ns: int) -> None:
+        import threading
+
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from rosgraph_msgs.msg import Clock
+
+        self._clock_msg = Clock
+        # Absolute, whatever the player's namespace, and best effort with depth 1: what
+        # rclpy's and rclcpp's TimeSource subscribe with (rclcpp::ClockQoS, rosbag2's offer)
+        self._pub = node.create_publisher(
+            Clock, "/clock", QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+        self._rate = rate
+        self._lock = threading.Lock()
+        self._base_ns = self._until_ns = start_ns
+        self._base_wall: float | None = None  # None: held at _base_ns
+        self._stop = threading.Event()
+        self.tick()
+        self._thread = threading.Thread(target=self._run, args=(1.0 / hz,), daemon=True,
+                                        name="play-clock")
+        self._thread.start()
+
+    def _run(self, period: float) -> None:
+        while not self._stop.wait(period):
+            self.tick()
+
+    def run(self, t0_wall: float, t0_ns: int, *, until_ns: int) -> None:
+        """The pass that started at monotonic `t0_wall` with its record at `t0_ns`; the
+        clock goes no further than `until_ns` (the next record's)."""
+        with self._lock:
+            jumped = (self._base_wall, self._base_ns) != (t0_wall, t0_ns)
+            self._base_wall, self._base_ns, self._until_ns = t0_wall, t0_ns, until_ns
+        if jumped:
+            self.tick()
+
+    def tick(self) -> None:
+        """Publish the bag's time now."""
+        with self._lock:
+            now_ns = self._base_ns
+            if self._base_wall is not None:
+                ran = (time.monotonic() - self._base_wall) * self._rate * 1e9
+                # (rounded: at a record's due time, exactly its stamp, not 1 ns short)
+                now_ns = min(self._base_ns + round(ran), self._until_ns)
+            self._pub.publish(self._clock_msg(clock=messages.header(now_ns, "").stamp))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def _sim_time_subscribers(node, topics: list[str]) -> list[str]:
+    """The nodes that subscribe to one of `topics` and to `/clock`: nodes with
+    `use_sim_time` (rclpy's and rclcpp's TimeSource subscribe it on the node itself). A
+    look at the graph, no request to the nodes."""
+    clocked = {(i.node_namespace, i.node_name)
+               for i in node.get_subscriptions_info_by_topic("/clock")}
+    return sorted({f"{i.node_namespace.rstrip('/')}/{i.node_name}" for t in topics
+                   for i in node.get_subscriptions_info_by_topic(t)
+                   if (i.node_namespace, i.node_name) in clocked})
+
+
 def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] | None = None,
-         namespace: str = "", settle_s: float = 2.5, wait_s: float = 15.0) -> dict:
+         namespace: str = "", settle_s: float = 2.5, wait_s: float = 15.0,
+         clock_hz: float | None = None) -> dict:
     """Publish a bag into the live ROS graph at its recorded rate (scaled by `rate`).
 
     Bag topics are published relative to `namespace` (``/points`` -> ``/uav1/points``).
     Playing starts once the subscribers are matched and unchanged for `settle_s`, or after
     `wait_s` if none come. Ctrl-C (KeyboardInterrupt) stops it wherever it is, and is
-    raised again with the count of messages published.
+    raised again with the count of messages published. With `clock_hz`, `/clock` carries
+    the bag's time (`_BagClock`) from the start, `clock_hz` times a second; without it,
+    a subscriber with `use_sim_time` is warned of once (its time would stand still).
     """
     import rclpy
     from rclpy.duration import Duration
@@ -1030,6 +1109,8 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
 
     if rate <= 0:
         raise BagError("--rate must be positive")
+    if clock_hz is not None and not clock_hz > 0:
+        raise BagError("--clock must be positive")
     with BagReader(src) as reader:
         have = [t.topic for t in reader.topics()]
         missing = sorted(set(topics or ()) - set(have))
@@ -1041,6 +1122,9 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
             raise BagError(f"bag {src} has none of the requested topics")
         if reader.count([t.topic for t in infos]) == 0:
             raise BagError(f"bag {src} holds no message to play")
+        start_ns = 0  # the first record's time: /clock's until playing starts
+        if clock_hz is not None:
+            start_ns = next(reader.records([t.topic for t in infos])).stamp_ns
         # No signal handlers of rclpy's: on SIGINT they shut the context down under a
         # publish (RCLError), before Python's own handler stops the loop.
         rclpy.init(args=None, signal_handler_options=SignalHandlerOptions.NO)
@@ -1058,11 +1142,20 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
             # Bag topics are absolute names; published relative so `-r __ns:=` style use works.
             pubs[t.topic] = node.create_publisher(_msg_class(t.msgtype), t.topic.lstrip("/"), qos)
         sent = 0
+        clock: _BagClock | None = None
         try:
+            if clock_hz is not None:
+                clock = _BagClock(node, clock_hz, rate, start_ns)
             names = [p.topic_name for p in pubs.values()]
             if not _subscriptions_settled(node, names, quiet_s=settle_s, timeout_s=wait_s):
                 log.warning("play: no steady subscriber on %s after %g s; playing anyway",
                             ", ".join(names), wait_s)
+            sim_time = [] if clock is not None else _sim_time_subscribers(node, names)
+            if sim_time:
+                log.warning("play: %s subscribed to /clock (use_sim_time): nothing "
+                            "publishes it without --clock, so their ROS time stands still and "
+                            "their timers (dem_builder's DEM) never fire; use --clock",
+                            ", ".join(sim_time))
             while True:
                 t0_wall = time.monotonic()
                 t0_bag = None
@@ -1070,9 +1163,13 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
                     t0_bag = record.stamp_ns if t0_bag is None else t0_bag
                     due = t0_wall + (record.stamp_ns - t0_bag) * 1e-9 / rate
                     delay = due - time.monotonic()
+                    if clock is not None:
+                        clock.run(t0_wall, t0_bag, until_ns=record.stamp_ns)
                     if delay > 0:
                         time.sleep(delay)
                     raw = cdr_of_record(reader, record)
+                    if clock is not None:
+                        clock.tick()  # (the record's time now: the clock reached it)
                     if raw is not None:
                         pubs[record.topic].publish(raw)
                         sent += 1
@@ -1092,6 +1189,8 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
         except KeyboardInterrupt as exc:  # (SIGTERM too, from the CLI: same type)
             raise type(exc)(f"published: {sent}") from None
         finally:
+            if clock is not None:
+                clock.close()
             node.destroy_node()
             rclpy.try_shutdown()
     return {"published": sent}
