@@ -651,7 +651,7 @@ def test_export_dem_replaces_its_own_outputs_and_nothing_else(sim_bag, tmp_path,
     (["las2bag", "/nonexistent.laz", "OUT"], "LAS file not found"),
     (["export-dem", "/nonexistent/bag", "OUT.tif"], "bag not found"),
     (["simulate", "OUT", "--scene", "moon"], "invalid choice: 'moon'"),  # a usage mistake
-    (["demo", "--duration", "-1"], "must be positive"),
+    (["demo", "--duration", "-1"], "must lie in [0.001, 1e+06]"),
     (["las2bag", "/nonexistent.laz", "OUT", "--frame-id", ""], "not a valid frame id"),
     (["replay", "/nonexistent/bag", "OUT", "--bogus"],
      "unrecognized arguments: --bogus (see lidar-obstacles replay --help)"),
