@@ -815,3 +815,23 @@ def test_a_cloud_with_an_unset_stamp_leaves_the_bags_span_as_recorded(sim_bag, t
     assert summary["messages"] == 20
     assert summary["bag_seconds"] == pytest.approx(2.0)  # 20 clouds at 10 Hz
     assert summary["real_time_factor"] < 1000
+
+
+def test_clouds_without_a_frame_id_are_said_once(sim_bag, tmp_path):
+    """Clouds with frame_id '' were processed and their outputs went out with no frame,
+    which RViz and tf cannot place, without a word."""
+    from lidar_obstacles.io.bags import POINTCLOUD2, BagWriter, typestore
+    from lidar_obstacles.ros.stages import missing_frame_warning
+
+    bag = tmp_path / "frameless"
+    with BagReader(sim_bag) as reader, BagWriter(bag) as out:
+        out.add_topic("/points", POINTCLOUD2)
+        for rec in list(reader.records(["/points"]))[:5]:
+            msg = reader.deserialize(rec)
+            msg.header.frame_id = ""
+            out.write("/points", rec.stamp_ns, bytes(typestore().serialize_cdr(msg, POINTCLOUD2)))
+    res = cli_subprocess("replay", bag, tmp_path / "out", "--no-dem")
+    assert res.returncode == 0, res.stderr
+    said = [line for line in res.stderr.splitlines() if "no frame_id" in line]
+    assert said == [f"replay: warning: {missing_frame_warning('')}"]
+    assert missing_frame_warning("map") is None and missing_frame_warning("/") is not None

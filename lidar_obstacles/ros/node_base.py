@@ -41,8 +41,8 @@ from lidar_obstacles.core.arrays import (release_free_memory, reuse_freed_memory
 from lidar_obstacles.errors import ConfigError, LidarObstaclesError, count_reason
 from lidar_obstacles.ros import messages
 from lidar_obstacles.ros.params import declare_config, on_parameter_change
-from lidar_obstacles.ros.stages import (Pose, coarse_xyz_warning, moving_frame_warning,
-                                        pose_of_odometry, pose_problem)
+from lidar_obstacles.ros.stages import (Pose, coarse_xyz_warning, missing_frame_warning,
+                                        moving_frame_warning, pose_of_odometry, pose_problem)
 
 WARN_THROTTLE_S = 5.0
 
@@ -151,6 +151,7 @@ class PipelineNode(Node):
         self._stage_cfg = self.cfg  # the stage's
         on_parameter_change(self, lambda: self.cfg, self._apply_config)
         self.poses = PoseBuffer()
+        self._warned: set[int] = set()  # the kinds of warning about the clouds said
         self.create_subscription(Odometry, "odom", self._on_odometry,
                                  QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT))
         self._points_sub: Any = None
@@ -301,10 +302,14 @@ class PipelineNode(Node):
         if cfg.use_odometry and pose is None:
             self._reject("no odometry pose near the cloud's stamp", counter="dropped_no_pose")
             return
-        for warning in (moving_frame_warning(msg.header.frame_id, pose, cfg.use_odometry),
-                        coarse_xyz_warning(msg, pose, cfg)):
-            if warning is not None:
-                self.get_logger().warning(warning, once=True)
+        for kind, warning in enumerate((
+                moving_frame_warning(msg.header.frame_id, pose, cfg.use_odometry),
+                coarse_xyz_warning(msg, pose, cfg), missing_frame_warning(msg.header.frame_id))):
+            # each kind once (rclpy's `once` is per line of code: one line for all of them
+            # said only the first kind that came)
+            if warning is not None and kind not in self._warned:
+                self._warned.add(kind)
+                self.get_logger().warning(warning)
         t0 = time.perf_counter()
         try:
             n_in, n_out = self.process_cloud(msg, pose)

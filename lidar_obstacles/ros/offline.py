@@ -29,8 +29,8 @@ from lidar_obstacles.io.shared_pickle import (BlockPool, SharedPickle, attach, d
                                               from_shared, to_shared)
 from lidar_obstacles.ros import messages
 from lidar_obstacles.ros.stages import (DemStage, DetectorStage, DetectorWork, Pose,
-                                        coarse_xyz_warning, moving_frame_warning,
-                                        pose_of_odometry)
+                                        coarse_xyz_warning, missing_frame_warning,
+                                        moving_frame_warning, pose_of_odometry)
 
 log = logging.getLogger(__name__)
 
@@ -511,7 +511,8 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
             pose = poses.nearest(stamp_ns, max_age)
             for kind, warning in enumerate((
                     moving_frame_warning(msg.header.frame_id, pose, use_odom),
-                    detector and coarse_xyz_warning(msg, pose, detector.cfg))):
+                    detector and coarse_xyz_warning(msg, pose, detector.cfg),
+                    missing_frame_warning(msg.header.frame_id))):
                 if warning and kind not in warned:
                     bar.write(f"{desc}: warning: {warning}", file=sys.stderr)
                     warned.add(kind)

@@ -108,6 +108,17 @@ class Prepared:
     frame_id: str
 
 
+def missing_frame_warning(cloud_frame: str) -> str | None:
+    """What to say, once, of clouds with no frame_id (None when they have one): they are
+    processed all the same, in whatever frame they are, and every output goes out with no
+    frame either, which RViz and tf cannot place."""
+    if cloud_frame.strip("/"):
+        return None
+    return ("the clouds have no frame_id: the outputs have none either, and RViz or tf "
+            "cannot place them; set the driver's frame (REP-103: a gravity-aligned frame "
+            "such as 'map' or 'odom', or the sensor's with use_odometry)")
+
+
 def coarse_xyz_warning(msg, pose: Pose | None, cfg: NodeInputConfig) -> str | None:
     """What to say, once, when clouds moved into the odometry frame keep FLOAT32 `x y z`
     (`odometry_xyz_type: input`) and the vehicle is so far from that frame's origin that
