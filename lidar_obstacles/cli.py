@@ -289,7 +289,8 @@ def run(args: argparse.Namespace) -> dict:
         if args.benchmark == "isprs":
             unused = [flag for flag, given in (
                 ("--report", args.report is not None), ("--blocks", args.blocks != "6x6"),
-                ("--topic", args.topic is not None), ("--no-dem", args.no_dem)) if given]
+                ("--topic", args.topic is not None), ("--no-dem", args.no_dem),
+                ("--skip-malformed", args.skip_malformed)) if given]
             if unused:  # (they were ignored)
                 raise ConfigError(f"--benchmark isprs takes only --params-file, not "
                                   f"{', '.join(unused)}")

@@ -105,3 +105,15 @@ def signal_at_import(entry: str, module: str, sig: int = signal.SIGINT, *,
             f"sys.meta_path.insert(0, Signal())\n"
             f"from {entry} import main\n"
             f"sys.exit(main())\n")
+
+
+@pytest.fixture(scope="module")
+def ros_node():
+    """A node of the test module's own, to listen and call services with (rclpy started for
+    it, and shut down after the module)."""
+    rclpy = pytest.importorskip("rclpy")
+    rclpy.init()
+    node = rclpy.create_node("test_listener")
+    yield node
+    node.destroy_node()
+    rclpy.try_shutdown()

@@ -60,15 +60,6 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 
 
-@pytest.fixture(scope="module")
-def ros_node():
-    rclpy.init()
-    node = rclpy.create_node("contract_cli_listener")
-    yield node
-    node.destroy_node()
-    rclpy.try_shutdown()
-
-
 def test_play_loop_plays_the_bag_again_until_ctrl_c(ros_node, tmp_path):
     from lidar_obstacles.ros import offline
 

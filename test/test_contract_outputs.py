@@ -3,16 +3,11 @@ the topics the nodes publish (obstacle_edges, the DEM, the markers), vegetation 
 and of the running nodes their input and output QoS and their parameter descriptors."""
 from __future__ import annotations
 
-import signal
 import subprocess
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
-
-from conftest import REPO
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -29,6 +24,8 @@ from lidar_obstacles.core.obstacles import classify_obstacles  # noqa: E402
 from lidar_obstacles.io.bags import BagReader  # noqa: E402
 from lidar_obstacles.io.pointcloud2 import read_points  # noqa: E402
 from lidar_obstacles.ros import messages  # noqa: E402
+from test_live_nodes import _call, _spin_until, _stop  # noqa: E402
+from test_live_nodes import _start as start_node  # noqa: E402
 
 NS = "/contract_outputs"
 
@@ -168,42 +165,7 @@ DEM_OUT = ("dem", "dem_image", "dem_info")
 
 
 def _start(node: str, *ros_args: str) -> subprocess.Popen:
-    exe = Path(sys.executable).parent / node
-    cmd = [str(exe)] if exe.is_file() else [sys.executable, "-m",
-                                            f"lidar_obstacles.scripts.{node}"]
-    return subprocess.Popen(cmd + ["--ros-args", "-r", f"__ns:={NS}", *ros_args], cwd=REPO,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-
-
-def _stop(proc: subprocess.Popen) -> tuple[int, str]:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-    return proc.returncode, proc.stdout.read()
-
-
-def _spin_until(node, predicate, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        rclpy.spin_once(node, timeout_sec=0.1)
-        if predicate():
-            return True
-    return False
-
-
-def _call(node, srv_type, name: str, request, timeout: float = 30.0):
-    client = node.create_client(srv_type, name)
-    try:
-        assert client.wait_for_service(timeout_sec=timeout), f"service {name} not available"
-        future = client.call_async(request)
-        assert _spin_until(node, future.done, timeout), f"no answer from {name}"
-        return future.result()
-    finally:
-        node.destroy_client(client)
+    return start_node(f"lidar_obstacles.scripts.{node}", *ros_args, ns=NS)
 
 
 @pytest.fixture(scope="module")

@@ -35,11 +35,11 @@ pytestmark = pytest.mark.slow
 NS = "/uav1"
 
 
-def _start(module: str, *ros_args: str) -> subprocess.Popen:
-    """Start a node executable (the installed console script, as a user would)."""
+def _start(module: str, *ros_args: str, ns: str = NS) -> subprocess.Popen:
+    """Start a node executable (the installed console script, as a user would) in `ns`."""
     exe = Path(sys.executable).parent / module.rsplit(".", 1)[-1]
     cmd = [str(exe)] if exe.is_file() else [sys.executable, "-m", module]
-    return subprocess.Popen(cmd + ["--ros-args", "-r", f"__ns:={NS}", *ros_args],
+    return subprocess.Popen(cmd + ["--ros-args", "-r", f"__ns:={ns}", *ros_args],
                             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
@@ -61,15 +61,6 @@ def flight(tmp_path_factory) -> Path:
                     "--duration", "3", "--seed", "5"], cwd=REPO, check=True,
                    capture_output=True, timeout=300)
     return out
-
-
-@pytest.fixture(scope="module")
-def ros_node():
-    rclpy.init()
-    node = rclpy.create_node("live_test_listener")
-    yield node
-    node.destroy_node()
-    rclpy.try_shutdown()
 
 
 def _spin_until(node, predicate, timeout: float) -> bool:
@@ -1005,13 +996,50 @@ def test_dem_builder_stops_without_a_word_on_stderr(stop):
     proc = subprocess.Popen([sys.executable, "-m", "lidar_obstacles.scripts.dem_builder",
                              "--ros-args", "-r", "__ns:=/quiet_stop"], cwd=REPO,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    # (stopped once its timers run and its services are served)
+    err = signal_when(proc, lambda: time.sleep(3.0), stop, timeout=30)[1]
+    said = [line for line in err.splitlines() if not re.match(r"\[(INFO|WARN)\]", line)]
+    assert (proc.returncode, said) == (0, []), err
+
+
+def test_a_stop_during_save_dem_answers_the_call_and_does_not_wait_for_the_file(
+        ros_node, tmp_path):
+    """A stop while save_dem was writing a big DEM waited for the whole file (25 s in the
+    reviewer's case) and a second Ctrl-C could not cut it short: the executor's threads
+    were waited for before the node was told it was stopping. The call now answers that
+    the node is stopping, and the node exits at once on the second signal."""
+    script = tmp_path / "node.py"
+    script.write_text(textwrap.dedent("""
+        import sys, time
+        from lidar_obstacles.ros import dem_builder
+
+        def slow(self):
+            time.sleep(60.0)
+            return True, "written"
+
+        dem_builder.DemBuilderNode._write_dem = slow
+        from lidar_obstacles.scripts.dem_builder import main
+        sys.exit(main(["--ros-args", "-r", "__ns:=/slow_save"]))
+    """))
+    proc = subprocess.Popen([sys.executable, str(script)], cwd=REPO, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
     try:
-        time.sleep(3.0)  # its timers running, its services served
-        proc.send_signal(stop)
-        err = proc.communicate(timeout=30)[1]
+        client = ros_node.create_client(Trigger, "/slow_save/save_dem")
+        assert client.wait_for_service(timeout_sec=60)
+        answer = client.call_async(Trigger.Request())
+        _spin_until(ros_node, lambda: False, 2.0)  # (the worker is writing by now)
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGINT)
+        assert _spin_until(ros_node, lambda: proc.poll() is not None, 30.0)
+        assert time.monotonic() - t0 < 10.0
+        _spin_until(ros_node, answer.done, 5.0)
+        ros_node.destroy_client(client)
     finally:
         if proc.poll() is None:
             proc.kill()
-            proc.wait()
-    said = [line for line in err.splitlines() if not re.match(r"\[(INFO|WARN)\]", line)]
-    assert (proc.returncode, said) == (0, []), err
+        log = proc.communicate()[0]
+    assert proc.returncode == 0 and "Traceback" not in log, log
+    assert answer.done() and answer.result().success is False, log
+    assert answer.result().message == "the node is stopping"

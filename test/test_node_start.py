@@ -196,3 +196,22 @@ def test_a_node_named_only_in_other_vehicles_sections_is_refused_in_one_line(tmp
         f"obstacle_detector: error: params file {params}: section '/uav1/obstacle_detector' "
         "does not reach the node /uav3/obstacle_detector (rcl matches the whole name): key it "
         "'/uav3/obstacle_detector' or '/**/obstacle_detector'\n"))
+
+
+def test_a_remap_rule_for_this_node_only_sets_its_namespace(tmp_path):
+    """`-r obstacle_detector:__ns:=/uav1` (a rule naming the node) is valid ROS 2 and rclpy
+    applies /uav1's section under it; the check before the node starts took the namespace
+    for / and refused the file. A rule for another node is none of this one's business."""
+    from lidar_obstacles.config import ObstacleDetectorConfig
+    from lidar_obstacles.errors import ConfigError
+    from lidar_obstacles.ros.node_base import _check_params_files
+
+    params = tmp_path / "uav1.yaml"
+    params.write_text("/uav1/obstacle_detector:\n  ros__parameters:\n    ground.cell: 2.0\n")
+    rules = ["-r", "obstacle_detector:__ns:=/uav1"]
+    _check_params_files(["--ros-args", *rules, "--params-file", str(params)],
+                        ObstacleDetectorConfig)
+    with pytest.raises(ConfigError, match="does not reach the node /uav2/obstacle_detector"):
+        _check_params_files(["--ros-args", "-r", "dem_builder:__ns:=/uav1", "-r",
+                             "__ns:=/uav2", "--params-file", str(params)],
+                            ObstacleDetectorConfig)

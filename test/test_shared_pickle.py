@@ -131,7 +131,8 @@ def test_pool_blocks_are_reused_and_carry_the_result_back(cloud):
 def test_blocks_of_a_run_killed_outright_are_swept_by_the_next(tmp_path, monkeypatch):
     """A replay killed with SIGKILL left its blocks in /dev/shm (9 MB for one run, still
     there hours later); the next run's first pool unlinks those of processes gone, and
-    leaves those of live ones (a run beside it) and names not ours."""
+    leaves those of live ones (a run beside it), of another PID namespace (a container
+    sharing /dev/shm: its PIDs are not ours to look up) and names not ours."""
     import subprocess
     import sys
 
@@ -139,12 +140,15 @@ def test_blocks_of_a_run_killed_outright_are_swept_by_the_next(tmp_path, monkeyp
 
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
-    names = [f"lidar_obstacles_{dead.pid}_0badf00d", f"lidar_obstacles_{os.getppid()}_0badf00d",
-             "psm_0badf00d", f"lidar_obstacles_{dead.pid}"]
+    ns = shared_pickle._pid_namespace()
+    names = [f"lidar_obstacles_{ns}_{dead.pid}_0badf00d", f"lidar_obstacles_{ns}_{10**20}_0bad",
+             f"lidar_obstacles_{ns}_{os.getppid()}_0badf00d", "psm_0badf00d",
+             f"lidar_obstacles_{ns}_{dead.pid}", f"lidar_obstacles_{ns + 1}_{dead.pid}_0badf00d"]
     for name in names:
         (tmp_path / name).write_bytes(b"x" * 10)
     monkeypatch.setattr(shared_pickle, "SHM_DIR", str(tmp_path))
     monkeypatch.setattr(shared_pickle, "_SWEPT", False)
     shared_pickle.BlockPool().close()
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(names[1:])
+    # kept: a live process's, not ours, not a block's name, another PID namespace's
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(names[2:])
     assert not shared_pickle.sweep_orphans()  # (once per process: the pool swept them)

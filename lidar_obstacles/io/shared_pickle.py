@@ -25,10 +25,22 @@ from dataclasses import dataclass
 from multiprocessing.shared_memory import SharedMemory
 from typing import Any, cast
 
+
+def _pid_namespace() -> int:
+    """The inode of this process's PID namespace (0 where there is none to read): PIDs are
+    those of a namespace, and containers sharing /dev/shm (`docker --ipc=host`) need not
+    share it."""
+    try:
+        return os.stat("/proc/self/ns/pid").st_ino
+    except OSError:
+        return 0
+
+
 # The start of the name of every block this package makes (`/dev/shm/NAME` on Linux): the
-# process that imported this module, whose forked workers (`replay`'s) keep it, so the
-# blocks of one run are known by it and never taken for another program's (psm_...).
-NAME_PREFIX = f"lidar_obstacles_{os.getpid()}_"
+# process that imported this module (in its PID namespace), whose forked workers
+# (`replay`'s) keep it, so the blocks of one run are known by it and never taken for another
+# program's (psm_...).
+NAME_PREFIX = f"lidar_obstacles_{_pid_namespace()}_{os.getpid()}_"
 
 
 SHM_DIR = "/dev/shm"  # where Linux keeps the blocks, by name
@@ -36,25 +48,27 @@ _SWEPT = False  # (once per process)
 
 
 def sweep_orphans() -> list[str]:
-    """Unlink the blocks of runs that are gone: those named NAME_PREFIX-style after a
-    process that no longer exists. A run killed outright (`kill -9`, the OOM killer)
-    leaves its blocks behind (megabytes each, until the machine restarts); this is done
-    by the next run's first pool. A block of a live process, or of another user's, is left
-    be. Returns the names unlinked; nothing on a system without SHM_DIR."""
+    """Unlink the blocks of runs that are gone: those named NAME_PREFIX-style, in this PID
+    namespace, after a process that no longer exists. A run killed outright (`kill -9`,
+    the OOM killer) leaves its blocks behind (megabytes each, until the machine restarts);
+    this is done by the next run's first pool. A block of a live process, of another
+    user's, or of another PID namespace (a container's, whose PIDs this one cannot see) is
+    left be. Returns the names unlinked; nothing on a system without SHM_DIR."""
     gone: list[str] = []
     try:
         names = os.listdir(SHM_DIR)
     except OSError:
         return gone
+    ours = f"lidar_obstacles_{_pid_namespace()}_"
     for name in names:
-        head, _, rest = name.partition("lidar_obstacles_")
+        head, _, rest = name.partition(ours)
         pid_text, sep, _ = rest.partition("_")
         if head or not sep or not pid_text.isdigit() or int(pid_text) == os.getpid():
             continue
         try:
             os.kill(int(pid_text), 0)
             continue  # alive (the pid may be another program's now: its blocks stay)
-        except ProcessLookupError:
+        except (ProcessLookupError, OverflowError):  # (gone, or no pid at all)
             pass
         except PermissionError:
             continue  # another user's process, alive

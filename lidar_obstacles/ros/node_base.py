@@ -281,9 +281,14 @@ class PipelineNode(Node):
         """The node's own work on the worker thread (`stage_lock` held), after each cloud
         and on `wake`, off the executor: none here (the DEM builder makes its grid)."""
 
-    def destroy_node(self) -> None:
+    def begin_stop(self) -> None:
+        """No more clouds: the worker thread ends after the one in hand, and a service
+        waiting on it (save_dem) answers that the node is stopping."""
         self._stopping = True
         self._wake.set()
+
+    def destroy_node(self) -> None:
+        self.begin_stop()
         if self._worker is not threading.current_thread():
             # The cloud in hand, 10 s at most, unless asked again to stop: a second Ctrl-C,
             # or launch's SIGTERM 5 s after its SIGINT. The worker, a daemon, is left to its
@@ -478,6 +483,13 @@ def _check_params_files(argv: list[str], cls: type | None) -> None:
         return
     namespace = "/"
     for rule in _ros_options(argv, "-r"):
+        # a rule for one node only, `obstacle_detector:__ns:=/uav1`, is this node's when
+        # it names it (and none of its business when it names another)
+        target, sep, rest = rule.partition(":")
+        if sep and not rest.startswith("="):
+            if target != name:
+                continue
+            rule = rest
         if rule.startswith(("__node:=", "__name:=")):
             return  # (its sections are named otherwise: rcl's word stands)
         if rule.startswith("__ns:="):
@@ -566,6 +578,8 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
         pass
     finally:
         stop.unwatch()
+        if node is not None:  # (a save_dem waiting on the worker answers now, not after it)
+            getattr(node, "begin_stop", lambda: None)()
         _finish_callbacks(executor)
         executor.shutdown()
         if node is not None:
