@@ -823,7 +823,9 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str, *,
     the root namespace, where the offline commands run the nodes' stages), as
     `section_reaches` matches them; the others (another vehicle's ``/uav1/<node>:``) are
     neither applied nor checked. A file that names the node only in sections that do not
-    reach it is a ConfigError: rcl would give the node nothing of them without a word.
+    reach it is a ConfigError when no other section reaches it, or when one of those is a
+    bare ``<node>:`` (the node runs in a namespace): rcl would give the node nothing of
+    them without a word.
     Nested sections and dotted keys are both accepted; rclpy's own parameters
     (`ros_own`) are left to it. Raises ConfigError for a missing file, bad YAML, unknown
     parameters or invalid values.
@@ -840,6 +842,8 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str, *,
     updates: dict[str, Any] = {}
     ours = False  # a section for any node of this package
     named, reached = [], False  # the sections keyed by this node's name; one reaches it
+    applied = False  # a section of any key with some of our parameters reaches the node
+    bare_missed = False  # a `<node>:` section, which only the root namespace gets, missed
     for key, value in data.items():
         key_s = str(key).lstrip("/")
         node = key_s.rsplit("/", 1)[-1]
@@ -848,6 +852,7 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str, *,
         if node == node_name:
             named.append(str(key))
             reached |= matches
+            bare_missed |= key_s == node_name and not matches
         if isinstance(value, Mapping) and "ros__parameters" in value:
             params = value["ros__parameters"] or {}
             if not isinstance(params, Mapping):
@@ -861,6 +866,7 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str, *,
                 _check_node_section(path, node, flat)
             if matches:  # (a later section overrides an earlier one, as in ROS)
                 updates.update(flat)
+                applied |= bool(flat)  # (not a `/**` of launch's use_sim_time alone)
         else:
             raise ConfigError(f"params file {path}: '{key}' has no ros__parameters")
     # A file may hold other packages' nodes too, but one with none of ours is a misspelling
@@ -868,7 +874,11 @@ def load_params_file(path: str | Path, cls: type[T], node_name: str, *,
     if data and not ours:
         raise ConfigError(f"params file {path}: no section for {', '.join(NODE_CONFIGS)} "
                           f"or /** (found '{next(iter(data))}')")
-    if named and not reached:  # (another vehicle's sections beside one of its own are fine)
+    # Refused: a file whose sections for this node all miss it, when nothing else reaches
+    # it either (another vehicle's sections only), or one of them is a bare `<node>:` (meant
+    # for it, but it runs in a namespace). A fleet's `/**` with `/uav1/<node>`... is fine
+    # for /uav3, and so is another vehicle's section beside one of its own.
+    if named and not reached and (not applied or bare_missed):
         where = full_name if namespace else f"{full_name} in the root namespace"
         raise ConfigError(f"params file {path}: section '{named[0]}' does not reach the node "
                           f"{where} (rcl matches the whole name): key it "

@@ -298,3 +298,27 @@ def test_a_dumped_config_loads_back_whatever_its_floats(tmp_path):
     path = tmp_path / "dump.yaml"
     path.write_text(dump_ros_yaml(cfg, "/**"))
     assert load_params_file(path, DemBuilderConfig, "dem_builder") == cfg
+
+
+def test_a_fleet_file_serves_a_vehicle_without_a_section_of_its_own(tmp_path):
+    """`/**` for all and `/uav1/...`, `/uav2/...` overrides: a /uav3 node (and the offline
+    commands, root namespace) take `/**` alone; a bare `obstacle_detector:` beside `/**`
+    still refuses a namespaced node, which it was meant for but cannot reach."""
+    from lidar_obstacles.config import ObstacleDetectorConfig, load_params_file
+
+    fleet = tmp_path / "fleet.yaml"
+    fleet.write_text("/**:\n  ros__parameters:\n    ground.cell: 1.5\n"
+                     "/uav1/obstacle_detector:\n  ros__parameters:\n    ground.cell: 2.0\n"
+                     "/uav2/obstacle_detector:\n  ros__parameters:\n    ground.cell: 3.0\n")
+    for full_name in ("/uav3/obstacle_detector", None):
+        cfg = load_params_file(fleet, ObstacleDetectorConfig, "obstacle_detector",
+                               full_name=full_name)
+        assert cfg.ground.cell == 1.5
+    assert load_params_file(fleet, ObstacleDetectorConfig, "obstacle_detector",
+                            full_name="/uav2/obstacle_detector").ground.cell == 3.0
+    bare = tmp_path / "bare.yaml"
+    bare.write_text("/**:\n  ros__parameters:\n    ground.cell: 1.5\n"
+                    "obstacle_detector:\n  ros__parameters:\n    ground.cell: 2.0\n")
+    with pytest.raises(ConfigError, match="section 'obstacle_detector' does not reach"):
+        load_params_file(bare, ObstacleDetectorConfig, "obstacle_detector",
+                         full_name="/uav1/obstacle_detector")
