@@ -23,9 +23,9 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "obstacle_detector = lidar_obstacles.scripts.obstacle_detector:main",
-            "dem_builder = lidar_obstacles.scripts.dem_builder:main",
-            "cloud_simplifier = lidar_obstacles.scripts.cloud_simplifier:main",
+            "obstacle_detector = lidar_obstacles.scripts.obstacle_detector:console",
+            "dem_builder = lidar_obstacles.scripts.dem_builder:console",
+            "cloud_simplifier = lidar_obstacles.scripts.cloud_simplifier:console",
             "lidar-obstacles = lidar_obstacles.cli:console",
         ],
     },

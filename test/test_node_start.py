@@ -6,6 +6,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -13,7 +14,7 @@ import pytest
 from conftest import REPO, interrupt_while_importing, signal_at_import, stop_inside_exec
 
 # The node executables as setup.py installs them: name -> module of main
-NODES = dict(re.findall(r'"(\w+) = (lidar_obstacles\.[\w.]+):main"',
+NODES = dict(re.findall(r'"(\w+) = (lidar_obstacles\.[\w.]+):console"',
                         (REPO / "setup.py").read_text()))
 NODES.pop("lidar", None)  # (`lidar-obstacles` has a test of its own, in test_cli)
 
@@ -215,3 +216,25 @@ def test_a_remap_rule_for_this_node_only_sets_its_namespace(tmp_path):
         _check_params_files(["--ros-args", "-r", "dem_builder:__ns:=/uav1", "-r",
                              "__ns:=/uav2", "--params-file", str(params)],
                             ObstacleDetectorConfig)
+
+
+@pytest.mark.parametrize("second", [signal.SIGINT, signal.SIGTERM])
+def test_a_second_stop_signal_as_the_stopped_node_exits_changes_nothing(second):
+    """Ctrl-C twice (or launch's SIGTERM after its SIGINT) killed an idle node by the
+    second signal (status 130 / 143, nothing said): it landed in the interpreter's teardown,
+    after the node had stopped and its handlers were gone. Now ignored there: status 0."""
+    proc = subprocess.Popen([sys.executable, "-m", NODES["obstacle_detector"], "--ros-args",
+                             "-r", "__ns:=/second_stop"], cwd=REPO, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        while "ready" not in (line := proc.stderr.readline()):
+            assert line, "the node ended before it was ready"
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.02)  # (the node stops in milliseconds: the second comes in its exit)
+        proc.send_signal(second)
+        err = proc.communicate(timeout=30)[1]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0 and "Traceback" not in err, (proc.returncode, err)

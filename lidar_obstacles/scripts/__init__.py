@@ -125,7 +125,15 @@ def exit_process(status: int, *, stopped: bool) -> NoReturn:
     caught later: dataclasses and typing make their methods so while modules are imported,
     and a Ctrl-C landing there is noted as unhandled and acted on at exit. A console
     script or ``python -c`` exits on SystemExit before that check. Everything the program
-    has to undo on a stop is undone by then (its own ``finally`` blocks)."""
+    has to undo on a stop is undone by then (its own ``finally`` blocks).
+
+    From here on the stop signals are ignored: the node has stopped, and a second Ctrl-C
+    landing in the interpreter's ~0.2 s of teardown killed it by the signal (status 130 or
+    143 with nothing said; launch reports such a node as died). Ignored, not handled:
+    Python's teardown puts its own handlers' signals back to the default before the end,
+    and leaves ignored ones be."""
+    for stop in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(stop, signal.SIG_IGN)
     if stopped:
         for stream in (sys.stdout, sys.stderr):
             try:
@@ -137,7 +145,7 @@ def exit_process(status: int, *, stopped: bool) -> NoReturn:
 
 
 def exit_as_module(name: str) -> NoReturn:
-    """`python -m lidar_obstacles.scripts.<name>` (where the executables are not installed):
+    """The node executables (`console`) and `python -m lidar_obstacles.scripts.<name>`:
     run node `name` with the process's command line and exit with its status."""
     status = start(name, None)
     exit_process(status, stopped=bool(_RECEIVED))

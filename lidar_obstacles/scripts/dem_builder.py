@@ -2,11 +2,19 @@
 before main (see lidar_obstacles.scripts)."""
 from __future__ import annotations
 
+from typing import NoReturn
+
 from lidar_obstacles.scripts import exit_as_module, start
 
 
 def main(args: list[str] | None = None) -> int:
+    """Run the node on `args` (default: the process's command line); its exit status."""
     return start("dem_builder", args)
+
+
+def console() -> NoReturn:
+    """The `dem_builder` executable: `main`, then the exit (see `exit_process`)."""
+    exit_as_module("dem_builder")
 
 
 # `python -m lidar_obstacles.scripts.dem_builder`: where the executable is not installed
