@@ -11,7 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPO, interrupt_while_importing, signal_at_import, stop_inside_exec
+from conftest import (REPO, interrupt_while_importing, signal_at_import, signal_when,
+                      stop_inside_exec)
 
 # The node executables as setup.py installs them: name -> module of main
 NODES = dict(re.findall(r'"(\w+) = (lidar_obstacles\.[\w.]+):console"',
@@ -226,15 +227,12 @@ def test_a_second_stop_signal_as_the_stopped_node_exits_changes_nothing(second):
     proc = subprocess.Popen([sys.executable, "-m", NODES["obstacle_detector"], "--ros-args",
                              "-r", "__ns:=/second_stop"], cwd=REPO, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
-    try:
+
+    def first_stop() -> None:
         while "ready" not in (line := proc.stderr.readline()):
             assert line, "the node ended before it was ready"
         proc.send_signal(signal.SIGINT)
         time.sleep(0.02)  # (the node stops in milliseconds: the second comes in its exit)
-        proc.send_signal(second)
-        err = proc.communicate(timeout=30)[1]
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+
+    err = signal_when(proc, first_stop, second, timeout=30)[1]
     assert proc.returncode == 0 and "Traceback" not in err, (proc.returncode, err)
