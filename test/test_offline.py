@@ -737,6 +737,38 @@ def test_play_waits_for_subscriptions_to_settle():
     assert time.monotonic() - t0 >= 0.5
 
 
+class _Topics:
+    """Stands in for a node's graph queries: topic -> number of subscribers."""
+
+    def __init__(self, subscribers: dict[str, int]) -> None:
+        self.subscribers = subscribers
+
+    def get_topic_names_and_types(self) -> list:
+        return [(t, ["sensor_msgs/msg/PointCloud2"]) for t in self.subscribers]
+
+    def count_subscribers(self, topic: str) -> int:
+        return self.subscribers[topic]
+
+
+def test_play_without_subscribers_names_the_namespaces_that_have_them():
+    # play published /points while the nodes ran under /uav1 and /uav2: it said only
+    # "no steady subscriber", 15 s later, with nothing to tell why
+    graph = _Topics({"/uav1/points": 1, "/uav2/points": 2, "/points": 0, "/uav3/points": 0,
+                     "/uav1/odom": 1, "/lidar/front/points": 1})
+    assert offline._elsewhere_hint(graph, {"/points": "/points"}) == (
+        "; subscribed elsewhere: /lidar/front/points, /uav1/points, /uav2/points "
+        "(--namespace /lidar/front or --namespace /uav1 or --namespace /uav2?)")
+    # into the wrong namespace; and a bag topic one level deeper, reached only by a remap
+    assert offline._elsewhere_hint(_Topics({"/points": 1, "/uav2/points": 0}),
+                                   {"/points": "/uav2/points"}) == (
+        "; subscribed elsewhere: /points (no --namespace?)")
+    assert offline._elsewhere_hint(_Topics({"/uav1/points": 1}),
+                                   {"/ouster/points": "/ouster/points"}) == (
+        "; subscribed elsewhere: /uav1/points")
+    # nobody anywhere: nothing to add
+    assert offline._elsewhere_hint(_Topics({"/uav1/points": 0}), {"/points": "/points"}) == ""
+
+
 def _children(pid: int) -> list[int]:
     """The child processes of `pid` (Linux /proc)."""
     out = []

@@ -1097,6 +1097,27 @@ def _sim_time_subscribers(node, topics: list[str]) -> list[str]:
                    if (i.node_namespace, i.node_name) in clocked})
 
 
+def _elsewhere_hint(node, played: dict[str, str]) -> str:
+    """A hint naming the subscribed topics that end like a played one (`played`: bag topic
+    -> the name it is published on) but are not it: a node under /uav1 while play publishes
+    /points. With the namespace that would reach them; "" if there are none."""
+    found: dict[str, str | None] = {}  # topic -> the namespace that reaches it, if one does
+    for graph_name, _ in node.get_topic_names_and_types():
+        if graph_name in played.values() or not node.count_subscribers(graph_name):
+            continue
+        for bag_topic in played:
+            if graph_name.endswith(bag_topic):  # (bag topics are absolute: "/" included)
+                found[graph_name] = graph_name[:-len(bag_topic)]
+            elif graph_name.rsplit("/", 1)[-1] == bag_topic.rsplit("/", 1)[-1]:
+                found.setdefault(graph_name, None)
+    if not found:
+        return ""
+    ways = [f"--namespace {ns}" if ns else "no --namespace"
+            for ns in sorted({ns for ns in found.values() if ns is not None})]
+    how = f" ({' or '.join(ways)}?)" if ways else ""
+    return f"; subscribed elsewhere: {', '.join(sorted(found))}{how}"
+
+
 def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] | None = None,
          namespace: str = "", settle_s: float = 2.5, wait_s: float = 15.0,
          clock_hz: float | None = None) -> dict:
@@ -1155,8 +1176,9 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
                 clock = _BagClock(node, clock_hz, rate, start_ns)
             names = [p.topic_name for p in pubs.values()]
             if not _subscriptions_settled(node, names, quiet_s=settle_s, timeout_s=wait_s):
-                log.warning("play: no steady subscriber on %s after %g s; playing anyway",
-                            ", ".join(names), wait_s)
+                log.warning("play: no steady subscriber on %s after %g s; playing anyway%s",
+                            ", ".join(names), wait_s,
+                            _elsewhere_hint(node, {t: p.topic_name for t, p in pubs.items()}))
             sim_time = [] if clock is not None else _sim_time_subscribers(node, names)
             if sim_time:
                 log.warning("play: %s subscribed to /clock (use_sim_time): nothing "
