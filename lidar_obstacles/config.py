@@ -83,12 +83,23 @@ def _balanced(wkt: str) -> bool:
     return depth == 0 and not quoted
 
 
+def _checked_crs(code: int | None, wkt: str) -> tuple[int | None, str]:
+    from lidar_obstacles.io.crs import CrsError, tiff_crs
+
+    try:
+        tiff_crs(code, wkt)
+    except CrsError as exc:
+        raise ConfigError(f"parameter 'export.crs': {exc}") from None
+    return code, wkt
+
+
 def parse_crs(text: str) -> tuple[int | None, str]:
     """`EPSG:32632` / `32632` -> (32632, ""); WKT -> (None, wkt); "" -> (None, "").
 
     Raises ConfigError for anything else: an EPSG code GeoTIFF cannot hold as a key
-    (EPSG_KEY_RANGE; give such a CRS as WKT), or a text that is no CRS WKT (a known
-    keyword, then brackets that pair up)."""
+    (EPSG_KEY_RANGE; give such a CRS as WKT), a text that is no CRS WKT (a known
+    keyword, then brackets that pair up), or a CRS a DEM cannot be in (not in EPSG's
+    database; geographic, geocentric or vertical: `lidar_obstacles.io.crs.tiff_crs`)."""
     text = text.strip()
     if not text:
         return None, ""
@@ -99,10 +110,10 @@ def parse_crs(text: str) -> tuple[int | None, str]:
         if not lo <= code <= hi:
             raise ConfigError(f"parameter 'export.crs': EPSG code {code} does not fit a "
                               f"GeoTIFF key ({lo}-{hi}): give the CRS as WKT")
-        return code, ""
+        return _checked_crs(code, "")
     keyword = re.match(r"([A-Za-z_]+)\s*[\[(]", text)
     if keyword and keyword.group(1).upper() in WKT_KEYWORDS and _balanced(text):
-        return None, text
+        return _checked_crs(None, text)
     raise ConfigError(f"parameter 'export.crs': {text!r} is neither EPSG:<code> nor a CRS WKT")
 
 
@@ -427,7 +438,10 @@ class DemConfig:
     extent: float = param(200.0, "the rolling DEM keeps this square around the vehicle "
                           "(0: the whole flight up to `max_cells`)", "m", min=0.0,
                           max=100000.0)
-    max_cells: int = param(4_000_000, "upper bound on grid cells kept in memory", "cells",
+    max_cells: int = param(4_000_000, "upper bound on grid cells kept in memory (~32 bytes "
+                           "each); beyond it the DEM becomes a window of that many cells "
+                           "round the latest ground, and `export-dem` stops with an error",
+                           "cells",
                            min=100, max=400_000_000)
     publish_rate: float = param(1.0, "how often `dem`, `dem_image` and `dem_info` are "
                                 "published", "Hz", min=0.01, max=50.0)
@@ -535,8 +549,8 @@ def check_file_path(text: str) -> str:
 class ExportConfig:
     path: str = param("dem.tif", "where `save_dem` writes the GeoTIFF (relative: to the "
                       "node's working folder)", check=check_file_path)
-    crs: str = param("", "CRS written into the GeoTIFF, e.g. `EPSG:32632` or WKT (empty: "
-                     "none)", check=parse_crs)
+    crs: str = param("", "CRS written into the GeoTIFF: `EPSG:<code>` or WKT of a projected "
+                     "CRS, maybe with its heights (empty: none)", check=parse_crs)
 
 
 # --------------------------------------------------------------------------- node configs

@@ -47,12 +47,13 @@ def test_file_is_north_up(tmp_path):
     assert tuple(tags[33550])[:2] == (2.0, 2.0)
 
 
-def test_wkt_citation_and_geographic_code(tmp_path):
-    wkt = 'PROJCS["Amersfoort / RD New",AUTHORITY["EPSG","28992"]]'
+def test_wkt_citation_is_kept_beside_the_code(tmp_path):
+    from pyproj import CRS
+
+    wkt = CRS.from_epsg(28992).to_wkt()
     back = read_geotiff(write_geotiff(tmp_path / "a.tif", _grid(), crs_epsg=28992,
                                       crs_wkt=wkt))
     assert back.epsg == 28992 and back.citation == wkt
-    assert read_geotiff(write_geotiff(tmp_path / "b.tif", _grid(), crs_epsg=4326)).epsg == 4326
 
 
 def test_gdal_reads_transform_and_nodata(tmp_path):
@@ -68,18 +69,54 @@ def test_gdal_reads_transform_and_nodata(tmp_path):
         assert ds.index(512003.0, 5403001.0) == (2, 1)
 
 
-@pytest.mark.parametrize("epsg, model, key", [(4326, 2, 2048), (32632, 1, 3072)])
-def test_a_geographic_crs_is_written_as_geographic(tmp_path, epsg, model, key):
-    """GTModelTypeGeoKey (1024) says projected (1) or geographic (2), and the code goes
-    in GeographicTypeGeoKey (2048) or ProjectedCSTypeGeoKey (3072): a WGS 84 DEM labelled
-    projected is read by GDAL as a CRS in metres with degree coordinates."""
+ESRI_UTM32_ETRS89 = (
+    'PROJCS["ETRS_1989_UTM_Zone_32N",GEOGCS["GCS_ETRS_1989",DATUM["D_ETRS_1989",SPHEROID['
+    '"GRS_1980",6378137.0,298.257222101]],PRIMEM["Greenwich",0.0],UNIT["Degree",'
+    '0.0174532925199433]],PROJECTION["Transverse_Mercator"],PARAMETER["False_Easting",'
+    '500000.0],PARAMETER["False_Northing",0.0],PARAMETER["Central_Meridian",9.0],'
+    'PARAMETER["Scale_Factor",0.9996],PARAMETER["Latitude_Of_Origin",0.0],UNIT["Meter",1.0]]')
+
+
+@pytest.mark.parametrize("epsg, wkt, keys", [
+    (32632, "", {3072: 32632}),
+    # projected, in the 4000s: keyed as geographic by the code's range before
+    (4647, "", {3072: 4647}),
+    # a projected CRS with its heights: the heights' code in VerticalCSTypeGeoKey
+    (7415, "", {3072: 28992, 4096: 5709}),
+    # ESRI's WKT (LAS 1.4's usual) names no code: the one it matches; it was a citation only
+    (None, ESRI_UTM32_ETRS89, {3072: 25832, 1026: 0}),  # (1026: the citation, at 0)
+])
+def test_the_crs_goes_in_the_keys_epsg_has_for_it(tmp_path, epsg, wkt, keys):
+    """GTModelTypeGeoKey (1024) projected (1), and the code in ProjectedCSTypeGeoKey
+    (3072), as EPSG's database says of it, not its range; GDAL reads it back."""
     import tifffile
 
-    path = write_geotiff(tmp_path / "dem.tif", _grid(), crs_epsg=epsg)
+    path = write_geotiff(tmp_path / "dem.tif", _grid(), crs_epsg=epsg, crs_wkt=wkt)
     with tifffile.TiffFile(path) as tif:
         words = list(tif.pages[0].tags[34735].value)
-    keys = {words[i]: words[i + 3] for i in range(4, len(words), 4)}
-    assert keys == {1024: model, 1025: 1, key: epsg}  # (1025: PixelIsArea)
+    assert {words[i]: words[i + 3] for i in range(4, len(words), 4)} == {
+        1024: 1, 1025: 1, **keys}  # (1025: PixelIsArea)
+    rasterio = pytest.importorskip("rasterio")
+    with rasterio.open(path) as ds:
+        assert ds.crs.is_projected and ds.crs.to_epsg() in (epsg, keys[3072])
+
+
+@pytest.mark.parametrize("text, message", [
+    ("EPSG:4326", r"EPSG:4326 is geographic \(WGS 84\): its x and y are degrees"),
+    ("EPSG:7844", "EPSG:7844 is geographic"),  # (GDA2020: keyed as projected before)
+    ("EPSG:4978", "EPSG:4978 is a geocentric CRS"),
+    ("EPSG:5709", "EPSG:5709 is a vertical CRS"),
+    ("EPSG:1234", "EPSG:1234 is not a CRS in the EPSG database"),
+    ('GEOGCS["WGS 84"]', "the WKT is no CRS pyproj can read"),
+])
+def test_a_crs_a_dem_cannot_be_in_is_refused(tmp_path, text, message):
+    with pytest.raises(ConfigError, match=message):
+        replace(DemBuilderConfig(), {"export.crs": text})
+    code = int(text[5:]) if text.startswith("EPSG:") else None
+    with pytest.raises(ExportError, match=message):
+        write_geotiff(tmp_path / "dem.tif", _grid(), crs_epsg=code,
+                      crs_wkt="" if code else text)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_errors_leave_nothing_behind(tmp_path):
@@ -98,7 +135,7 @@ def test_parse_crs():
     assert parse_crs("EPSG:32632") == (32632, "")
     assert parse_crs("epsg:28992") == (28992, "")
     assert parse_crs("") == (None, "")
-    assert parse_crs('GEOGCS["WGS 84"]') == (None, 'GEOGCS["WGS 84"]')
+    assert parse_crs(ESRI_UTM32_ETRS89) == (None, ESRI_UTM32_ETRS89)
     with pytest.raises(ConfigError):
         parse_crs("UTM 32")
     # refused when set (a file, -p, set_parameters), not first at save_dem
@@ -123,10 +160,13 @@ def test_a_crs_geotiff_cannot_hold_is_refused_when_set(text, message):
 
 
 def test_wkt_forms_are_accepted():
-    wkt2 = ('PROJCRS["WGS 84 / UTM zone 32N",BASEGEOGCRS["WGS 84",DATUM["World Geodetic '
-            'System 1984 [sic]",ELLIPSOID["WGS 84",6378137,298.257223563]]],ID["EPSG",32632]]')
+    from pyproj import CRS
+    from pyproj.enums import WktVersion
+
+    wkt2 = CRS.from_epsg(32632).to_wkt(WktVersion.WKT2_2019)
     assert parse_crs(wkt2) == (None, wkt2)
-    assert parse_crs('  COMPD_CS["x", PROJCS["y"], VERT_CS["z"]] ')[1].startswith("COMPD_CS")
+    compound = "  " + CRS.from_epsg(7415).to_wkt(WktVersion.WKT1_GDAL) + " "
+    assert parse_crs(compound)[1].startswith("COMPD_CS")
 
 
 def test_hillshade_png(tmp_path):

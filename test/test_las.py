@@ -66,6 +66,14 @@ def _las_with(tmp_path, vlr) -> laspy.LasData:
      '298.257223563]],ID["EPSG",4326]],CS[Cartesian,2],ID["EPSG",32632]]', 32632),  # WKT2
     ('PROJCRS["custom",BASEGEOGCRS["WGS 84",DATUM["WGS84",ELLIPSOID["WGS 84",6378137,'
      '298.257223563]],ID["EPSG",4326]],CS[Cartesian,2]]', None),  # not its base's 4326
+    # ESRI's WKT names no code (LAS 1.4's usual): the one it matches in EPSG's database;
+    # it was None, and the GeoTIFF had the CRS as a citation only
+    ('PROJCS["ETRS_1989_UTM_Zone_32N",GEOGCS["GCS_ETRS_1989",DATUM["D_ETRS_1989",SPHEROID['
+     '"GRS_1980",6378137.0,298.257222101]],PRIMEM["Greenwich",0.0],UNIT["Degree",'
+     '0.0174532925199433]],PROJECTION["Transverse_Mercator"],PARAMETER["False_Easting",'
+     '500000.0],PARAMETER["False_Northing",0.0],PARAMETER["Central_Meridian",9.0],'
+     'PARAMETER["Scale_Factor",0.9996],PARAMETER["Latitude_Of_Origin",0.0],UNIT["Meter",1.0]]',
+     25832),
 ])
 def test_the_epsg_code_of_a_wkt_is_that_of_the_whole_crs(tmp_path, wkt, epsg):
     from laspy.vlrs.known import WktCoordinateSystemVlr

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -596,6 +597,61 @@ def test_export_dem_says_why_no_cloud_could_be_used(sim_bag, tmp_path):
     assert res.returncode == 2 and "20 rejected" in res.stderr
     assert "more than input.max_points" in res.stderr and "no ground" not in res.stderr
     assert not (tmp_path / "dem.tif").exists()
+
+
+def test_export_dem_of_more_than_max_cells_is_an_error_not_a_window(sim_bag, tmp_path):
+    # over dem.max_cells the rolling grid became a window round the last cloud, and the
+    # survey's first part was left out of the GeoTIFF without a word
+    params = tmp_path / "few.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    dem.max_cells: 2000\n")
+    res = cli_subprocess("export-dem", sim_bag, tmp_path / "dem.tif", "--params-file", params)
+    assert res.returncode == 2 and re.fullmatch(
+        r"lidar-obstacles export-dem: error: the ground spans \d+ x \d+ m: \d+ cells of "
+        r"dem.resolution 1 m, over dem.max_cells = 2000; raise it \(~32 bytes a cell\) or "
+        r"coarsen dem.resolution\n", res.stderr), res.stderr
+    assert list(tmp_path.iterdir()) == [params]
+    # the live node's DEM still rolls on as a window (a flight has no end)
+    from lidar_obstacles.config import DemBuilderConfig, replace
+    from lidar_obstacles.core.dem import RollingDem
+
+    dem = RollingDem(replace(DemBuilderConfig(), {"dem.extent": 0.0, "dem.max_cells": 2000}))
+    for x0 in (0.0, 500.0):
+        dem.update(np.column_stack([np.random.default_rng(1).uniform(x0, x0 + 20, (500, 2)),
+                                    np.zeros(500)]))
+    assert dem.snapshot().elevation.size <= 2000
+
+
+def _with_crs(src: Path, out: Path, crs: str) -> Path:
+    """A copy of bag `src` with `crs` on /survey_crs, as las2bag records a survey's."""
+    from std_msgs.msg import String
+
+    from lidar_obstacles.io.bags import CRS_TOPIC, BagWriter
+
+    with BagReader(src) as reader, BagWriter(out) as bag:
+        bag.add_topic(CRS_TOPIC, offline.STRING, transient_local=True)
+        bag.write(CRS_TOPIC, 1, offline._serialize(String(data=crs)))
+        for t in reader.topics():
+            bag.add_topic(t.topic, t.msgtype)
+        for record in reader.records([t.topic for t in reader.topics()]):
+            bag.write(record.topic, record.stamp_ns, record.raw)
+    return out
+
+
+def test_export_dem_writes_no_crs_the_dem_cannot_be_in_and_says_so(sim_bag, tmp_path):
+    from lidar_obstacles.io.geotiff import read_geotiff
+
+    bag = _with_crs(sim_bag, tmp_path / "lonlat", "EPSG:4326")
+    res = cli_subprocess("export-dem", bag, tmp_path / "dem.tif")
+    assert res.returncode == 0, res.stderr
+    assert ("export-dem: warning: the survey's CRS (/survey_crs in the bag) is not written: "
+            "EPSG:4326 is geographic (WGS 84): its x and y are degrees") in res.stderr
+    assert json.loads(res.stdout)["crs"] == ""
+    assert read_geotiff(tmp_path / "dem.tif").epsg is None
+    # given on the command line, it is refused before the work
+    res = cli_subprocess("export-dem", bag, tmp_path / "b.tif", "--crs", "EPSG:4326")
+    assert res.returncode == 2 and res.stderr == (
+        "lidar-obstacles export-dem: error: --crs: EPSG:4326 is geographic (WGS 84): its x "
+        "and y are degrees, the DEM's cells metres; give the projected CRS of the points\n")
 
 
 def test_export_dem_lands_on_survey_coordinates(tmp_path):

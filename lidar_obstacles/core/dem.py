@@ -338,6 +338,9 @@ class _VariogramCache:
         return self._vg
 
 
+_CELL_BYTES = 32  # a _Cells cell: count 4, sums 3 x 8, interpolated layer 4
+
+
 class _Cells:
     """Per-cell sums of a grid window: count, sum of z and of x, y offsets from the
     cell centre, plus the interpolated layer. ``origin_ij`` is the global integer index
@@ -518,13 +521,17 @@ class RollingDem:
     of the latest ground when no vehicle position is given); cells leaving it are
     forgotten. ``dem.extent`` = 0: the grid grows to cover the whole flight, at most
     ``dem.max_cells`` cells (beyond that it becomes a window of that many cells around
-    the latest data). Each update adds the points to their cells' sums (measured cells
-    become the mean of all ground seen there); the empty cells near the data added since
-    are re-interpolated when the DEM is read (``snapshot``) or on ``refill``.
+    the latest data), unless `whole`: then a grid that would exceed it raises
+    ConfigError (`export-dem`, whose DEM is of the whole survey: a window lost the
+    survey's first part without a word). Each update adds the points to their cells' sums
+    (measured cells become the mean of all ground seen there); the empty cells near the
+    data added since are re-interpolated when the DEM is read (``snapshot``) or on
+    ``refill``.
     """
 
-    def __init__(self, cfg: DemBuilderConfig):
+    def __init__(self, cfg: DemBuilderConfig, *, whole: bool = False):
         self.cfg = cfg
+        self.whole = whole
         self._res = cfg.dem.resolution
         side = max(int(np.floor(np.sqrt(cfg.dem.max_cells))), 1)
         if cfg.dem.extent > 0:
@@ -562,6 +569,13 @@ class RollingDem:
                 lo, hi = np.minimum(lo, old_lo), np.maximum(hi, old_hi)
             # grow in steps of 64 cells so a growing flight does not copy every message
             size = -(-(hi - lo) // 64) * 64
+            if size[0] * size[1] > self.cfg.dem.max_cells and self.whole:
+                span = (hi - lo) * res
+                raise ConfigError(
+                    f"the ground spans {span[0]:.0f} x {span[1]:.0f} m: "
+                    f"{int(size[0]) * int(size[1])} cells of dem.resolution {res:g} m, over "
+                    f"dem.max_cells = {self.cfg.dem.max_cells}; raise it (~{_CELL_BYTES} "
+                    f"bytes a cell) or coarsen dem.resolution")
             if size[0] * size[1] > self.cfg.dem.max_cells:
                 origin, shape = self._window(xyz, vehicle_xy)
             else:

@@ -457,11 +457,13 @@ def bare_earth_of(xyz: np.ndarray, ground: np.ndarray, height_above_ground: np.n
 class DemPipeline:
     """Ground selection plus the rolling DEM, for the `dem_builder` node and `replay`."""
 
-    def __init__(self, cfg: DemBuilderConfig | None = None) -> None:
+    def __init__(self, cfg: DemBuilderConfig | None = None, *, whole: bool = False) -> None:
+        """whole: the DEM of everything, never a window (RollingDem's `whole`)."""
         from lidar_obstacles.core.dem import CheckPoints, RollingDem
 
         self.cfg = cfg or DemBuilderConfig()
-        self.dem = RollingDem(self.cfg)
+        self.whole = whole
+        self.dem = RollingDem(self.cfg, whole=whole)
         self._ground: StreamingGround | None = None  # the `detector` source's, on first use
         self._thin_rng = np.random.default_rng(self.cfg.thinning.seed)
         self.checks = CheckPoints(CHECK_MESSAGES * self.cfg.thinning.check_points)
@@ -479,7 +481,7 @@ class DemPipeline:
                         or cfg.dem.max_cells != old.dem.max_cells)
         self.cfg = cfg
         if grid_changed:
-            self.dem = RollingDem(cfg)
+            self.dem = RollingDem(cfg, whole=self.whole)
         else:
             self.dem.cfg = cfg  # interpolation settings apply from the next update
         if self._ground is not None:

@@ -17,6 +17,7 @@ import numpy as np
 from lidar_obstacles.core.dem import DemGrid
 from lidar_obstacles.errors import LidarObstaclesError
 from lidar_obstacles.io.atomic import PNG, TIFF, Kind, atomic_write
+from lidar_obstacles.io.crs import MODEL_PROJECTED, CrsError, tiff_crs
 
 MODEL_PIXEL_SCALE = 33550
 MODEL_TIEPOINT = 33922
@@ -24,11 +25,12 @@ GEO_KEY_DIRECTORY = 34735
 GEO_ASCII_PARAMS = 34737
 GDAL_NODATA = 42113
 
-GT_MODEL_TYPE = 1024  # 1 projected, 2 geographic
+GT_MODEL_TYPE = 1024  # 1 projected (the only kind a DEM in metres is written in)
 GT_RASTER_TYPE = 1025  # 1 PixelIsArea
 GT_CITATION = 1026
 GEOGRAPHIC_TYPE = 2048
 PROJECTED_CS_TYPE = 3072
+VERTICAL_CS_TYPE = 4096
 
 
 class ExportError(LidarObstaclesError):
@@ -48,18 +50,24 @@ def _atomic_write(path: str | Path, write: Callable[[str], None], kind: Kind) ->
 
 
 def _geokeys(epsg: int | None, citation: str) -> tuple[list[int], str]:
-    """GeoKeyDirectory shorts and GeoAsciiParams text."""
+    """GeoKeyDirectory shorts and GeoAsciiParams text of the CRS of code `epsg`, else of
+    the WKT `citation` (:func:`tiff_crs`); the WKT is the citation as well. A CRS with no
+    EPSG code (a local one) is in the citation only, as GDAL reads it."""
     keys: list[tuple[int, int, int, int]] = [(GT_RASTER_TYPE, 0, 1, 1)]
     ascii_params = ""
-    # EPSG 4000-4999 are geographic 2-D CRSs (WGS 84 = 4326, ETRS89 = 4258, ...).
-    geographic = epsg is not None and 4000 <= epsg < 5000
     if epsg is not None or citation:
-        keys.append((GT_MODEL_TYPE, 0, 1, 2 if geographic else 1))
+        try:
+            crs = tiff_crs(epsg, citation)
+        except CrsError as exc:
+            raise ExportError(f"cannot write the DEM's CRS: {exc}") from None
+        if crs.projected is not None:
+            keys += [(GT_MODEL_TYPE, 0, 1, MODEL_PROJECTED),
+                     (PROJECTED_CS_TYPE, 0, 1, crs.projected)]
+        if crs.vertical is not None:
+            keys.append((VERTICAL_CS_TYPE, 0, 1, crs.vertical))
     if citation:
         ascii_params = citation.replace("|", "/") + "|"
         keys.append((GT_CITATION, GEO_ASCII_PARAMS, len(ascii_params), 0))
-    if epsg is not None:
-        keys.append((GEOGRAPHIC_TYPE if geographic else PROJECTED_CS_TYPE, 0, 1, epsg))
     keys.sort()
     flat = [1, 1, 0, len(keys)]
     for key in keys:
@@ -71,10 +79,11 @@ def write_geotiff(path: str | Path, grid: DemGrid, *, crs_epsg: int | None,
                   crs_wkt: str = "") -> Path:
     """Write the elevation layer as a float32 GeoTIFF, atomically; return the path.
 
-    crs_epsg: EPSG code written as ProjectedCSTypeGeoKey (GeographicTypeGeoKey for
-    4000-4999) or None; crs_wkt: stored as the citation when given (GDAL reads the
-    EPSG key; the WKT documents CRSs without a code). Raises ExportError for an empty
-    grid or an unwritable path.
+    crs_epsg: EPSG code of a projected CRS (a compound one's heights go in
+    VerticalCSTypeGeoKey) or None; crs_wkt: the CRS as WKT when there is no code, whose
+    EPSG match is written as the code would be; stored as the citation too (GDAL reads
+    the keys; the WKT documents CRSs without a code). Raises ExportError for an empty
+    grid, an unwritable path or a CRS that is not projected (:func:`tiff_crs`).
     """
     import tifffile
 

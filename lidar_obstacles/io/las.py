@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from lidar_obstacles.errors import LasError
+from lidar_obstacles.io.crs import epsg_of_wkt
 
 if TYPE_CHECKING:  # laspy is imported on first use
     from laspy import LasData
@@ -50,7 +51,7 @@ class LasCloud:
 
 
 def _crs_from_vlrs(header) -> tuple[str, int | None]:
-    """WKT and EPSG from the file's CRS records, without pyproj."""
+    """WKT and EPSG from the file's CRS records."""
     wkt = ""
     epsg = None
     for vlr in list(header.vlrs) + list(getattr(header, "evlrs", None) or []):
@@ -70,12 +71,12 @@ def _crs_from_vlrs(header) -> tuple[str, int | None]:
     if epsg is None and wkt:
         import re
 
-        # only the authority of the whole CRS, the last item of its outermost node (WKT1
-        # AUTHORITY, WKT2 ID): a custom CRS has none there, and the last one inside names
-        # a part of it (its unit, EPSG:9001, or its base geographic CRS)
+        # the authority of the whole CRS, the last item of its outermost node (WKT1
+        # AUTHORITY, WKT2 ID): the last one inside names a part of it (its unit,
+        # EPSG:9001, or its base geographic CRS); else the code the CRS matches in EPSG's
+        # database (ESRI's WKT, LAS 1.4's usual, names none)
         found = re.search(r'(?:AUTHORITY|ID)\[\s*"EPSG"\s*,\s*"?(\d+)"?\s*\]\s*\]$', wkt)
-        if found:
-            epsg = int(found.group(1))
+        epsg = int(found.group(1)) if found else epsg_of_wkt(wkt)
     return wkt, epsg
 
 

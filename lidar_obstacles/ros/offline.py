@@ -968,7 +968,7 @@ def export_dem(src: Path, out: Path, *, topic: str | None = None,
                     "square around the last position; set it to 0 for the whole survey",
                     dem_cfg.dem.extent, params_file)
     stats = ReplayStats()
-    stage = DemStage(dem_cfg)
+    stage = DemStage(dem_cfg, whole=True)  # (over dem.max_cells: an error, said early)
     with BagReader(src) as reader:
         bag_crs = read_crs(reader)
         for _ in run_stages(reader, topic=topic, detector=None, dem=stage, stats=stats,
@@ -982,7 +982,16 @@ def export_dem(src: Path, out: Path, *, topic: str | None = None,
         raise BagError(f"no ground found in {src}: cannot build a DEM")
     grid = crop_to_data(grid)
     crs_text = crs or dem_cfg.export.crs or bag_crs
-    epsg, wkt = parse_crs(crs_text)
+    try:
+        epsg, wkt = parse_crs(crs_text)
+    except ConfigError as exc:
+        if crs_text != bag_crs:
+            raise
+        # The survey's own CRS, which the DEM cannot be in: the DEM is still wanted
+        log.warning("export-dem: warning: the survey's CRS (%s in the bag) is not written: "
+                    "%s; --crs gives one", CRS_TOPIC,
+                    str(exc).removeprefix("parameter 'export.crs': "))
+        epsg, wkt, crs_text = None, "", ""
     write_geotiff(out, grid, crs_epsg=epsg, crs_wkt=wkt)
     write_hillshade_png(png, grid)
     return {"geotiff": str(out), "hillshade": str(png), "crs": crs_text,

@@ -300,9 +300,10 @@ class DetectorStage:
 class DemStage:
     """`dem_builder`'s work: feed messages into the rolling DEM, publish it on demand."""
 
-    def __init__(self, cfg: DemBuilderConfig) -> None:
+    def __init__(self, cfg: DemBuilderConfig, *, whole: bool = False) -> None:
+        """whole: the DEM of the whole bag, or ConfigError (`export-dem`; DemPipeline)."""
         self.cfg = cfg
-        self.pipeline = DemPipeline(cfg)
+        self.pipeline = DemPipeline(cfg, whole=whole)
         self.frame_id = "map"
         self.last_stamp_ns = 0
         # the DEM at its held-out check points, as of the last `dem_outputs`
