@@ -292,3 +292,15 @@ def test_by_code_counts_each_pair_of_reference_and_predicted_codes():
     assert by_code == {"1": {"1": 1}, "2": {"2": 2}, "7": {"1": 1}, "26": {"1": 2, "5": 2}}
     assert sum(n for row in by_code.values() for n in row.values()) == len(ref)
     assert json.loads(json.dumps(by_code)) == by_code
+
+
+def test_shield_wires_and_insulators_count_with_the_wires_and_towers():
+    # a reference with guard wires (13) and insulators (16) put in ground: safety said 0
+    ref = np.array([2] * 50 + [13] * 10 + [14] * 10 + [16] * 4 + [15] * 6)
+    pred = np.array([2] * 50 + [2] * 10 + [14] * 10 + [2] * 4 + [15] * 6)
+    r = M.evaluate_classes(ref, pred)
+    assert r["safety"] == {"n_wire": 20, "n_tower": 10, "wire_as_ground": 0.5,
+                           "tower_as_ground": 0.4, "obstacle_as_ground": 14 / 30}
+    # and a shield wire found as a wire (14) is the right class
+    r = M.evaluate_classes(ref, np.where(ref == 13, 14, np.where(ref == 16, 15, ref)))
+    assert r["overall_accuracy"] == 1.0 and r["per_class"]["wire"]["reference_count"] == 20

@@ -18,8 +18,9 @@ ground      2, 8, 9, 11               ground-level surfaces a DEM is built from:
                                       road surface
 vegetation  3, 4, 5                   low / medium / high vegetation
 building    6                         building
-wire        14                        wire conductor
-tower       15                        transmission tower
+wire        13, 14                    wire: guard / shield, conductor
+tower       15, 16                    transmission tower, and the wire's connectors
+                                      and insulators on it
 other       everything else           1 unclassified obstacle, 7 noise, 0 (ISPRS
                                       reference "object"), 26 crane, ...
 =========== ========================= =================================================
@@ -83,7 +84,7 @@ key                                          meaning
 ``blocks.share_kappa_gt_0_8``                eligible blocks with kappa > 0.8 / eligible
 ``blocks.share_kappa_gt_0_6``                eligible blocks with kappa > 0.6 / eligible
 ``blocks.mean_kappa``                        mean kappa of the eligible blocks
-``safety.n_wire`` / ``.n_tower``             reference wire (14) / tower (15) points
+``safety.n_wire`` / ``.n_tower``             reference wire (13, 14) / tower (15, 16) points
 ``safety.wire_as_ground``                    wire points predicted ground / wire points
 ``safety.tower_as_ground``                   tower points predicted ground / tower points
 ``safety.obstacle_as_ground``                both together
@@ -107,6 +108,9 @@ import numpy as np
 from lidar_obstacles.core.classes import TOWER, WIRE
 from lidar_obstacles.errors import CloudFormatError, ConfigError
 
+WIRE_CODES = (13, WIRE)  # ASPRS: wire - guard (shield), wire - conductor (phase)
+TOWER_CODES = (TOWER, 16)  # transmission tower, wire - structure connector (insulator)
+
 GROUPS: tuple[str, ...] = ("ground", "vegetation", "building", "wire", "tower", "other")
 """Names of the evaluation groups; index i of a group is its row/column in the matrices."""
 
@@ -121,8 +125,10 @@ _CODE_TO_GROUP = np.full(256, GROUP_OTHER, dtype=np.int64)
 _CODE_TO_GROUP[list(GROUND_CODES)] = GROUP_GROUND
 _CODE_TO_GROUP[[3, 4, 5]] = GROUP_VEGETATION
 _CODE_TO_GROUP[6] = GROUP_BUILDING
-_CODE_TO_GROUP[WIRE] = GROUP_WIRE
-_CODE_TO_GROUP[TOWER] = GROUP_TOWER
+# (the detector labels every wire 14 and every tower 15; a reference with shield wires (13)
+# or insulators (16) is compared with them: a shield wire put in ground is a wire missed)
+_CODE_TO_GROUP[list(WIRE_CODES)] = GROUP_WIRE
+_CODE_TO_GROUP[list(TOWER_CODES)] = GROUP_TOWER
 
 
 # --------------------------------------------------------------------------- helpers
@@ -459,8 +465,8 @@ def evaluate_classes(
     }
     ref_ground = ref == GROUP_GROUND
     pred_ground = pred == GROUP_GROUND
-    is_wire = ref_codes == WIRE
-    is_tower = ref_codes == TOWER
+    is_wire = _CODE_TO_GROUP[ref_codes] == GROUP_WIRE
+    is_tower = _CODE_TO_GROUP[ref_codes] == GROUP_TOWER
     n_wire = int(is_wire.sum())
     n_tower = int(is_tower.sum())
     wire_hit = int((is_wire & pred_ground).sum())
