@@ -573,6 +573,49 @@ def test_las2bag_refuses_gps_times_past_what_a_stamp_holds(tmp_path, outlier):
     assert tiled["sliced_by"] == "tiles"
 
 
+def _stamps(bag: Path) -> list[int]:
+    with BagReader(bag) as reader:
+        return [reader.deserialize(r).header.stamp.sec * 10**9
+                + reader.deserialize(r).header.stamp.nanosec
+                for r in reader.records(["/points"])]
+
+
+@pytest.mark.parametrize("adjusted, gps_start, first_utc", [
+    # adjusted standard GPS time, as the header's global encoding says: 86 400 s is 1e9 +
+    # 86 400 GPS seconds, 2011-09-15, when GPS ran 15 s ahead of UTC; it was taken for
+    # seconds of a week, and stamped 1970-01-02
+    (True, 86400.0, "2011-09-15T01:46:25"),
+    # 2019 (18 leap seconds): as before
+    (True, 2.6e8, "2019-12-10T07:59:42"),
+    # seconds of a GPS week the file does not name: from the day the file was made
+    (False, 3600.0, "2024-03-05T00:00:00"),
+    # no time at all: slices from that day too; the first was stamped 0, "unset" in ROS
+    (False, None, "2024-03-05T00:00:00"),
+])
+def test_las2bag_stamps_are_utc_or_start_on_the_files_day(tmp_path, adjusted, gps_start,
+                                                          first_utc):
+    import datetime
+
+    import laspy
+
+    header = laspy.LasHeader(point_format=1 if gps_start is not None else 0, version="1.2")
+    header.global_encoding.gps_time_type = (laspy.header.GpsTimeType.STANDARD if adjusted
+                                            else laspy.header.GpsTimeType.WEEK_TIME)
+    header.creation_date = datetime.date(2024, 3, 5)
+    survey = laspy.LasData(header)
+    rng = np.random.default_rng(0)
+    survey.x, survey.y = rng.uniform(0, 40, 3000), rng.uniform(0, 40, 3000)
+    survey.z = np.zeros(3000)
+    if gps_start is not None:
+        survey.gps_time = gps_start + np.linspace(0, 0.5, 3000)
+    survey.write(str(tmp_path / "survey.las"))
+    run_cli("las2bag", tmp_path / "survey.las", tmp_path / "bag")
+    stamps = _stamps(tmp_path / "bag")
+    first = datetime.datetime.fromtimestamp(stamps[0] // 10**9, datetime.timezone.utc)
+    assert first.strftime("%Y-%m-%dT%H:%M:%S") == first_utc
+    assert (np.diff(stamps) > 0).all()
+
+
 def test_las2bag_tiles(tmp_path):
     src = data_file("isprs/samp11-utm.laz")
     summary = run_cli("las2bag", src, tmp_path / "bag", "--tile-size", "50")

@@ -5,6 +5,7 @@ kind of points whether they came from a file, a bag or the simulator.
 """
 from __future__ import annotations
 
+import datetime
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -37,12 +38,17 @@ class LasCloud:
     crs_wkt: the file's CRS as WKT, or "" when the file states none.
     epsg: the EPSG code when one can be read from the CRS records, else None.
     has_gps_time: whether the point format records GPS time.
+    gps_adjusted: whether the header says that time is adjusted standard GPS time
+        (global encoding bit 0), not seconds of the GPS week.
+    created: the header's file creation day, or None when it has none.
     """
 
     points: np.ndarray
     crs_wkt: str
     epsg: int | None
     has_gps_time: bool
+    gps_adjusted: bool = False
+    created: datetime.date | None = None
 
     @property
     def xyz(self) -> np.ndarray:
@@ -164,7 +170,10 @@ def read_las(path: str | Path, *, allow_empty: bool = False) -> LasCloud:
     for name, _ in dtype[3:]:
         points[name] = np.asarray(las[name])
     wkt, epsg = _crs_from_vlrs(las.header)
-    return LasCloud(points=points, crs_wkt=wkt, epsg=epsg, has_gps_time="gps_time" in names)
+    created = las.header.creation_date  # (None when the header's day and year are 0)
+    return LasCloud(points=points, crs_wkt=wkt, epsg=epsg, has_gps_time="gps_time" in names,
+                    gps_adjusted=bool(int(las.header.global_encoding.gps_time_type)),
+                    created=created if created is None or created.year >= 1990 else None)
 
 
 def write_las_subset(src: str | Path, keep: np.ndarray, out: str | Path) -> int:

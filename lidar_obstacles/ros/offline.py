@@ -6,6 +6,7 @@ runs the very stage objects the nodes run.
 """
 from __future__ import annotations
 
+import calendar
 import collections
 import importlib
 import logging
@@ -47,7 +48,13 @@ OUTPUT_TYPES = {
 }
 TRANSIENT_LOCAL = {"/dem", "/dem_image", "/dem_info"}
 DEFERRED = ""  # topic of a `run_stages` item that is work to do, not a message (see drain)
-GPS_TO_UNIX = 315_964_800 - 18  # GPS epoch in Unix time, minus the leap seconds since then
+GPS_EPOCH_UNIX = 315_964_800  # 1980-01-06 00:00:00 UTC, GPS time 0
+# UTC days (Unix seconds) from which GPS time ran ahead of UTC by one more second: the leap
+# seconds since the GPS epoch (IERS; none announced after 2017)
+LEAP_SECONDS_FROM = np.array([
+    362_793_600, 394_329_600, 425_865_600, 489_024_000, 567_993_600, 631_152_000,
+    662_688_000, 709_948_800, 741_484_800, 773_020_800, 820_454_400, 867_715_200,
+    915_148_800, 1_136_073_600, 1_230_768_000, 1_341_100_800, 1_435_708_800, 1_483_228_800])
 # `/diagnostics` as the nodes publish it: every second (of the bag's time, here), latency
 # percentiles of the last LATENCY_WINDOW clouds, the rate over the last RATE_WINDOW.
 DIAGNOSTICS_PERIOD_NS = 1_000_000_000
@@ -111,14 +118,30 @@ def simulate(out: Path, *, scene: str, seed: int, duration: float, frame: str,
 # --------------------------------------------------------------------------- las2bag
 
 
+def gps_to_unix(gps_adjusted: np.ndarray) -> np.ndarray:
+    """Unix time (UTC seconds) of adjusted standard GPS times (GPS seconds less 1e9): the
+    GPS epoch's Unix time, less the leap seconds UTC had taken by then (18 since 2017, 16
+    in 2012-2015)."""
+    gps_unix = np.asarray(gps_adjusted, np.float64) + 1e9 + GPS_EPOCH_UNIX
+    # (GPS runs ahead of UTC by the leaps before it: compare in GPS's own count)
+    leaps = np.searchsorted(LEAP_SECONDS_FROM + np.arange(1, len(LEAP_SECONDS_FROM) + 1),
+                            gps_unix, side="right")
+    return gps_unix - leaps
+
+
 def _las_slices(points: np.ndarray, *, has_gps: bool, slice_seconds: float,
-                tile_size: float | None, strip_width: float
-                ) -> tuple[list[np.ndarray], np.ndarray, str]:
+                tile_size: float | None, strip_width: float, gps_adjusted: bool = False,
+                start_ns: int = SIM_EPOCH_NS) -> tuple[list[np.ndarray], np.ndarray, str]:
     """Split a survey into messages, the way a scanner would have sent them: by GPS time
     when the file has it; else, when it holds several flight lines (`point_source_id`),
     line after line, each in strips across its own length; else in strips across the
     survey's length, or in tiles when `tile_size` is given. Returns (index arrays, stamps
-    in ns, what it was sliced by: "gps_time", "flight_lines", "strips" or "tiles")."""
+    in ns, what it was sliced by: "gps_time", "flight_lines", "strips" or "tiles").
+
+    Stamps: adjusted standard GPS time (`gps_adjusted`, the header's global encoding; or
+    times beyond a week, from a writer that did not set it) is made UTC; seconds of an
+    unknown GPS week, and slices without time, are counted from `start_ns` (a stamp of 0
+    reads as unset in ROS)."""
     gps = points["gps_time"] if has_gps else None
     if tile_size is None and gps is not None and not np.isfinite(gps).all():
         # (its spread is NaN then, and the survey went quietly to strips)
@@ -130,8 +153,10 @@ def _las_slices(points: np.ndarray, *, has_gps: bool, slice_seconds: float,
         cuts = np.flatnonzero(np.diff(key)) + 1
         groups = np.split(order, cuts)
         starts = np.array([gps[g[0]] for g in groups])
-        # Adjusted standard GPS time (large, may be negative) -> Unix; week seconds stay relative.
-        base = starts + 1e9 + GPS_TO_UNIX if np.abs(starts).max() > 7 * 86400 else starts
+        if gps_adjusted or np.abs(starts).max() > 7 * 86400:
+            base = gps_to_unix(starts)
+        else:  # seconds of a GPS week the file does not name
+            base = start_ns * 1e-9 + (starts - starts[0])
         # a Header's stamp holds int32 seconds: rclpy wrapped later ones round to negative
         # stamps, and the bag's clock (int64 ns) overflowed on absurd ones
         if base.max() >= 2**31:
@@ -163,7 +188,7 @@ def _las_slices(points: np.ndarray, *, has_gps: bool, slice_seconds: float,
     order = np.argsort(key, kind="stable")
     cuts = np.flatnonzero(np.diff(key[order])) + 1
     groups = np.split(order, cuts)
-    stamps = (np.arange(len(groups)) * slice_seconds * 1e9).astype(np.int64)
+    stamps = start_ns + (np.arange(len(groups)) * slice_seconds * 1e9).astype(np.int64)
     return groups, stamps, how
 
 
@@ -195,9 +220,14 @@ def las2bag(src: Path, out: Path, *, slice_seconds: float = 0.1, tile_size: floa
     for name, _ in fields[:-1]:
         rec[name] = pts[name] if name in (pts.dtype.names or ()) else 0
     rec["point_id"] = np.arange(len(pts), dtype=np.uint32)
+    # a survey whose time is no date starts on the day its file was made, else on the
+    # simulator's day
+    start_ns = (SIM_EPOCH_NS if las.created is None else int(calendar.timegm(
+        las.created.timetuple())) * 10**9)
     groups, stamps, sliced_by = _las_slices(pts, has_gps=las.has_gps_time,
                                             slice_seconds=slice_seconds, tile_size=tile_size,
-                                            strip_width=strip_width)
+                                            strip_width=strip_width,
+                                            gps_adjusted=las.gps_adjusted, start_ns=start_ns)
     crs = f"EPSG:{las.epsg}" if las.epsg else las.crs_wkt
     from std_msgs.msg import String
 
