@@ -509,6 +509,10 @@ def test_las2bag_and_replay_every_shared_file(name, tmp_path):
     assert (ids == np.arange(len(las.points))).all()
     first = got[0]
     assert first.dtype["x"] == np.float64
+    # each field at a multiple of its size, the point a multiple of 8 bytes (C++ readers)
+    assert first.dtype.itemsize % 8 == 0
+    assert all(offset % first.dtype[name].itemsize == 0
+               for name, (_, offset) in first.dtype.fields.items())
     np.testing.assert_array_equal(first["x"], las.points["x"][first["point_id"]])
     np.testing.assert_array_equal(first["classification"],
                                   las.points["classification"][first["point_id"]])
