@@ -45,6 +45,7 @@ class LabelledCloud:
     predicted: np.ndarray | None = None
     vehicle: np.ndarray | None = None
     height_above_ground: np.ndarray | None = None
+    frame: str | None = None  # (None: a file's, or not known)
 
 
 @dataclass
@@ -139,7 +140,8 @@ def _labelled_clouds(reader, topic: str | None, cfg: NodeInputConfig,
     from lidar_obstacles.io.bags import ODOMETRY
     from lidar_obstacles.ros.node_base import PoseBuffer
     from lidar_obstacles.ros.offline import NO_POSE
-    from lidar_obstacles.ros.stages import moving_frame_warning, pose_of_odometry, prepare
+    from lidar_obstacles.ros.stages import (DetectorStage, moving_frame_warning,
+                                            pose_of_odometry, prepare)
 
     cloud_topic = reader.pointcloud_topic(topic)
     odom = [t.topic for t in reader.topics() if t.msgtype == ODOMETRY]
@@ -182,7 +184,8 @@ def _labelled_clouds(reader, topic: str | None, cfg: NodeInputConfig,
                 f"{cloud_topic} of {reader.path} is a detector's output (its points have a "
                 "'class' field), not a labelled scan: without --topic, `evaluate` scores a "
                 "replay's /ground and /obstacles together")
-        cloud.vehicle = pose.position if pose is not None else None
+        cloud.vehicle = DetectorStage.vehicle(pose, prep.frame_id)
+        cloud.frame = prep.frame_id
         clouds.append(cloud)
     if not clouds and malformed:
         raise BagError(f"none of the {seen} clouds on {cloud_topic} can be evaluated: "
@@ -216,7 +219,7 @@ def run_detector(inp: LabelledInput, cfg: ObstacleDetectorConfig, *,
             raise TimeoutError(f"out of time after {len(latencies)} of {len(inp.clouds)} "
                                f"clouds of {inp.name}")
         t0 = time.perf_counter()
-        res = det.process(c.xyz, stamp=c.stamp, vehicle_xyz=c.vehicle)
+        res = det.process(c.xyz, stamp=c.stamp, vehicle_xyz=c.vehicle, frame=c.frame)
         latencies.append(time.perf_counter() - t0)
         c.predicted, c.height_above_ground = res.classes, res.height_above_ground
     return latencies

@@ -186,3 +186,111 @@ def test_a_dem_from_the_detectors_ground_topic_is_the_dem_it_would_find():
         taken.process(msg)
     assert taken.shares_ground_with(ObstacleDetectorConfig(tiling=replace(
         ObstacleDetectorConfig().tiling, {"size": 33.0})))
+
+
+def _terrain(stamp_s: float, frame: str = "map", hill: float = 0.0, x0: float = 0.0,
+             z0: float = 0.0, seed: int = 0):
+    """A 60 x 60 m cloud of bare ground (20 000 points) from x0, with a smooth hill of
+    `hill` m in its middle, stamped stamp_s s in `frame`."""
+    rng = np.random.default_rng(seed)
+    points = np.zeros(20000, [("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    x, y = rng.uniform(0, 60, 20000), rng.uniform(0, 60, 20000)
+    r2 = (x - 30) ** 2 + (y - 30) ** 2
+    points["x"], points["y"] = x + x0, y
+    points["z"] = z0 + hill * np.exp(-r2 / 300.0) + rng.normal(0, 0.02, 20000)
+    return messages.cloud(points, messages.header(int(stamp_s * 1e9), frame))
+
+
+def test_a_clock_gone_back_or_a_new_frame_starts_afresh():
+    """Clouds stamped before the newest (a simulator reset, a bag played again or an
+    older one) kept the ground context, stamped "later", for good: a 6 m hill after a flat
+    field over the same ground kept ~22 % of its ground as obstacles, cloud after cloud.
+    Now such a cloud, or one in another frame, starts afresh: as a new node would."""
+    from lidar_obstacles.core.pipeline import RESTART_AFTER_S
+
+    stage = DetectorStage(ObstacleDetectorConfig())
+    said = [stage.process(_terrain(1000.0 + k, seed=k))[1]["restart"] for k in range(3)]
+    fresh = DetectorStage(ObstacleDetectorConfig())
+    for k in range(4):
+        msg = _terrain(500.0 + k, hill=6.0, seed=10 + k)
+        _, stats = stage.process(msg)
+        said.append(stats["restart"])
+        _, alone = fresh.process(msg)
+        assert stats["ground"] == alone["ground"] == 20000, (k, stats["ground"])
+    assert said[:3] == ["", "", ""] and said[4:] == ["", "", ""]
+    assert said[3] == "a cloud stamped 502.000 s before the newest (the clock went back)"
+    # a late cloud (reordered by a second at most) goes on with the stream
+    assert stage.process(_terrain(503.0 - RESTART_AFTER_S + 0.1, hill=6.0))[1]["restart"] == ""
+    # a new frame starts afresh too
+    _, stats = stage.process(_terrain(504.0, frame="odom", hill=6.0))
+    assert stats["restart"] == "a cloud in frame 'odom' after clouds in 'map'"
+
+
+def test_the_dem_starts_afresh_in_a_new_frame():
+    """A cloud in `odom` at z 0 and one in `map` at z 20 went into one DEM, published as
+    `map`'s: half its cells were another frame's."""
+    from lidar_obstacles.config import DemBuilderConfig
+    from lidar_obstacles.ros.stages import DemStage
+
+    stage, fresh = DemStage(DemBuilderConfig()), DemStage(DemBuilderConfig())
+    assert stage.process(_terrain(1.0, frame="odom"))["restart"] == ""
+    second = _terrain(2.0, frame="map", x0=50.0, z0=20.0)
+    assert stage.process(second)["restart"] == "a cloud in frame 'map' after clouds in 'odom'"
+    fresh.process(second)
+    grid = stage.grid()
+    assert stage.frame_id == "map" and np.nanmin(grid.elevation) > 19.0
+    # (as a new stage's, but for which points the thinning held out: its random stream goes on)
+    assert abs(np.isfinite(grid.elevation).sum() - np.isfinite(fresh.grid().elevation).sum()) < 50
+
+
+def test_a_pose_in_another_frame_does_not_place_the_grids():
+    """Odometry in `odom` at (500, 500), clouds in `map` round (30, 30), use_odometry off:
+    the clearance grid stood round (500, 500) with nothing known, and the DEM's window
+    too (0 of its cells). The pose places them only in its own frame."""
+    from lidar_obstacles.config import DemBuilderConfig
+    from lidar_obstacles.ros.stages import DemStage, Pose
+
+    far = Pose(0, np.array([500.0, 500.0, 60.0]), np.array([0.0, 0.0, 0.0, 1.0]), "odom",
+               "base_link")
+    msg = _terrain(1.0)
+    out, _ = DetectorStage(ObstacleDetectorConfig()).process(msg, far)
+    grid = dict(out)["clearance"]
+    assert abs(grid.info.origin.position.x - 30.0) < 60.0
+    assert (np.array(grid.data) >= 0).sum() > 1000
+    dem = DemStage(DemBuilderConfig())
+    dem.process(msg, far)
+    assert np.isfinite(dem.grid().elevation).sum() > 1000
+    # in the pose's own frame the grid is centred on it, as before
+    near = Pose(0, np.array([10.0, 10.0, 60.0]), np.array([0.0, 0.0, 0.0, 1.0]), "map")
+    out, _ = DetectorStage(ObstacleDetectorConfig()).process(msg, near)
+    size = ObstacleDetectorConfig().clearance.size
+    assert abs(dict(out)["clearance"].info.origin.position.x - (10.0 - size / 2)) <= 1.0
+
+
+def test_an_empty_cloud_publishes_an_unknown_clearance_grid():
+    """No return (high over ground, over water): the markers were cleared but the last
+    clearance grid, obstacles and all, stood until the next cloud with points."""
+    stage = DetectorStage(ObstacleDetectorConfig())
+    first = dict(stage.process(_terrain(1.0, hill=6.0))[0])["clearance"]
+    empty = np.zeros(0, [("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    out = dict(stage.process(messages.cloud(empty, messages.header(int(1.1e9), "map")))[0])
+    grid = out["clearance"]
+    assert set(grid.data) == {-1} and len(grid.data) == len(first.data)
+    assert grid.info.origin == first.info.origin and grid.header.stamp.nanosec == 100_000_000
+    assert [m.action for m in out["obstacle_markers"].markers] == [3]  # DELETEALL
+
+
+def test_a_dem_float32_cannot_hold_is_said():
+    """The `dem` cloud's x y are FLOAT32 (the contract's): at a UTM northing of 5.7e6 m
+    they hold 0.5 m, and 0.25 m cells fell two to a value without a word."""
+    from lidar_obstacles.core.dem import DemGrid
+    from lidar_obstacles.ros.stages import coarse_dem_warning
+
+    def grid(origin, res):
+        return DemGrid(np.zeros((800, 10), np.float32), np.zeros((800, 10), np.uint8),
+                       np.ones((800, 10), np.uint32), np.array(origin), res)
+
+    said = coarse_dem_warning(grid([500000.0, 5700000.0], 0.25))
+    assert said is not None and "hold a position only to 0.5 m" in said
+    assert coarse_dem_warning(grid([500000.0, 5700000.0], 2.0)) is None
+    assert coarse_dem_warning(grid([-100.0, -100.0], 0.05)) is None

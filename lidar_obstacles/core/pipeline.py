@@ -124,6 +124,42 @@ def _building_memory(seconds: float) -> RecentObjects:
 SHAPE_CONTEXT_SECONDS = 1.0
 SHAPE_CONTEXT_MESSAGES = 20
 
+# A cloud stamped more than this (s) before the newest one seen, or in another frame, starts
+# what is remembered afresh (the ground context, the towers, wires and roofs seen, the DEM):
+# the clock went back (a simulator reset, a bag played again, a driver's clock) or the
+# frame changed, and what was remembered belongs elsewhere. Stamped "later", the ground
+# context never aged out: a 6 m hill after a flat field kept 22 % of its ground as
+# obstacles for good. Within it, a cloud is only late (and loses to what came after it).
+RESTART_AFTER_S = 1.0
+
+
+class Timeline:
+    """Whether each cloud of a stream goes on with it or starts it over: its stamp went
+    back by more than RESTART_AFTER_S, or its frame changed (as tf's buffer is cleared
+    when ROS time jumps back)."""
+
+    def __init__(self) -> None:
+        self.newest: float | None = None  # s
+        self.frame: str | None = None
+        self.restarts = 0
+
+    def restart(self, stamp: float, frame: str | None = None) -> str:
+        """"" when the cloud stamped `stamp` s in `frame` (None: not known) goes on with
+        the stream; else why it starts it over."""
+        why = ""
+        if self.newest is not None and stamp < self.newest - RESTART_AFTER_S:
+            why = (f"a cloud stamped {self.newest - stamp:.3f} s before the newest (the "
+                   "clock went back)")
+        elif frame is not None and self.frame is not None and frame != self.frame:
+            why = f"a cloud in frame '{frame}' after clouds in '{self.frame}'"
+        if why:
+            self.restarts += 1
+            self.newest = stamp
+        else:
+            self.newest = stamp if self.newest is None else max(self.newest, stamp)
+        self.frame = self.frame if frame is None else frame
+        return why
+
 
 @dataclass(frozen=True)
 class ClearanceGrid:
@@ -155,6 +191,9 @@ class GroundStep:
     # one's first occurrence and (M,) which of them each point is (:func:`distinct_points`).
     first: np.ndarray | None = None
     inverse: np.ndarray | None = None
+    # Why this cloud started the stream over (Timeline; "" when it did not): the ground
+    # context was forgotten before it, and the obstacle step forgets its memories too
+    restart: str = ""
 
 
 @dataclass(frozen=True)
@@ -204,6 +243,12 @@ class StreamingGround:
         if cfg.ransac.seed != self.cfg.ransac.seed:
             self.rng = np.random.default_rng(cfg.ransac.seed)
         self.cfg = cfg
+
+    def restart(self) -> None:
+        """Forget the ground context (the stream started over: :class:`Timeline`)."""
+        from lidar_obstacles.core.context import GroundContext
+
+        self.context = GroundContext(self.cfg.context)
 
     def classify(self, xyz: np.ndarray, stamp: float
                  ) -> tuple[GroundResult, dict[str, float], np.ndarray | None,
@@ -273,9 +318,17 @@ class ObstacleDetector:
         self.ground = StreamingGround(self.cfg)
         self._obstacle_rng = np.random.default_rng(self.cfg.ransac.seed)
         self._feature_rng = np.random.default_rng(self.cfg.features.seed)
+        self.timeline = Timeline()
+        self._forget()
+
+    def _forget(self) -> None:
+        """The obstacle half's memories, new: the towers, wires and roofs seen, and the
+        obstacle candidates of the clouds just before."""
         self.towers, self.wires = _tower_memory(), _wire_memory()
         self.buildings = _building_memory(self.cfg.obstacles.building_memory)
         self.candidates: deque[tuple[float, np.ndarray]] = deque()  # (stamp s, (C, 3) m)
+        # where the last clearance grid stood (2,) m: an empty cloud's, all unknown, too
+        self._clearance_centre: np.ndarray | None = None
 
     def reconfigure(self, cfg: ObstacleDetectorConfig) -> None:
         """Take new parameters for the next message; the ground context is kept when its
@@ -289,28 +342,36 @@ class ObstacleDetector:
         self.cfg = cfg
 
     def process(self, xyz: np.ndarray, *, stamp: float = 0.0,
-                vehicle_xyz: np.ndarray | None = None) -> ObstacleResult:
+                vehicle_xyz: np.ndarray | None = None, frame: str | None = None
+                ) -> ObstacleResult:
         """Classify one cloud: `ground_step`, then `obstacle_step`.
 
         xyz: (N, 3) float64 metres, z up. stamp: seconds (for the ground context's age).
         vehicle_xyz: (3,) the UAV position for the clearance grid (None: the cloud's centre).
+        frame: the cloud's frame (None: not known); with the stamp, it tells when the
+        stream starts over (:class:`Timeline`) and what was remembered is forgotten.
         """
-        return self.obstacle_step(self.ground_step(xyz, stamp=stamp, vehicle_xyz=vehicle_xyz))
+        return self.obstacle_step(self.ground_step(xyz, stamp=stamp, vehicle_xyz=vehicle_xyz,
+                                                   frame=frame))
 
     def ground_step(self, xyz: np.ndarray, *, stamp: float = 0.0,
-                    vehicle_xyz: np.ndarray | None = None) -> GroundStep:
+                    vehicle_xyz: np.ndarray | None = None, frame: str | None = None
+                    ) -> GroundStep:
         """The first half of `process`: ground and height above ground, with the ground
         context of earlier clouds, which this cloud's ground then joins. Its only state is
         the context, so `replay` can run the second half in another process, one cloud
-        behind. Arguments as :meth:`process`."""
+        behind (a restart travels in the step). Arguments as :meth:`process`."""
         xyz = points_xyz(xyz, "obstacle detector")
+        restart = self.timeline.restart(stamp, frame)
+        if restart:
+            self.ground.restart()
         if len(xyz) == 0:
             return GroundStep(xyz, np.zeros(0, bool), np.zeros(0, np.float32), stamp,
-                              vehicle_xyz, {"total": 0.0})
+                              vehicle_xyz, {"total": 0.0}, restart=restart)
         g, timings, far, distinct = self.ground.classify(xyz, stamp)
         first, inverse = distinct if distinct is not None else (None, None)
         return GroundStep(xyz, g.ground, g.height_above_ground, stamp, vehicle_xyz, timings,
-                          far, first, inverse)
+                          far, first, inverse, restart)
 
     def obstacle_step(self, step: GroundStep) -> ObstacleResult:
         """The second half of `process`: obstacle classes, objects and the clearance grid
@@ -321,10 +382,22 @@ class ObstacleDetector:
 
         cfg, xyz = self.cfg, step.xyz
         t3 = time.perf_counter()
+        if step.restart:
+            self._forget()
         if len(xyz) == 0:
+            # (no return: high over the ground or water) nothing is known around the
+            # vehicle now; the last grid, obstacles and all, stood for it until the next
             empty = np.zeros(0, bool)
+            centre = (np.asarray(step.vehicle_xyz, float)[:2] if step.vehicle_xyz is not None
+                      else self._clearance_centre)
+            clearance = None
+            if centre is not None:
+                cells, origin, res = clearance_grid(np.zeros((0, 3)), np.zeros(0, np.uint8),
+                                                    np.zeros(0, np.float32), center_xy=centre,
+                                                    cfg=cfg.clearance)
+                clearance = ClearanceGrid(cells, np.asarray(origin, float), float(res))
             return ObstacleResult(empty, np.zeros(0, np.uint8), np.zeros(0, np.float32),
-                                  np.zeros(0, np.int32), (), None, {"total": 0.0})
+                                  np.zeros(0, np.int32), (), clearance, {"total": 0.0})
         near: slice | np.ndarray = slice(None)
         if step.far is not None or step.first is not None:
             near = np.arange(len(xyz)) if step.far is None else np.flatnonzero(~step.far)
@@ -354,6 +427,7 @@ class ObstacleDetector:
         t4 = time.perf_counter()
         centre = (np.asarray(step.vehicle_xyz, float)[:2] if step.vehicle_xyz is not None
                   else (lo + hi) / 2.0)
+        self._clearance_centre = centre
         cells, origin, res = clearance_grid(xyz, ob.classes, step.height_above_ground,
                                             center_xy=centre, cfg=cfg.clearance)
         t5 = time.perf_counter()
@@ -468,6 +542,21 @@ class DemPipeline:
         self._thin_rng = np.random.default_rng(self.cfg.thinning.seed)
         self.checks = CheckPoints(CHECK_MESSAGES * self.cfg.thinning.check_points)
         self.last_added = 0  # ground points the last cloud put into the DEM (diagnostics)
+        self.timeline = Timeline()
+        self.last_restart = ""  # why the last cloud started the DEM over ("": it did not)
+
+    def _went_on(self, stamp: float, frame: str | None) -> None:
+        """Start the DEM, its ground context and check points over when the cloud (stamp s,
+        frame) starts the stream over (:class:`Timeline`): a DEM in one frame, or of one
+        run of the clock, is not another's."""
+        from lidar_obstacles.core.dem import CheckPoints, RollingDem
+
+        self.last_restart = self.timeline.restart(stamp, frame)
+        if self.last_restart:
+            self.dem = RollingDem(self.cfg, whole=self.whole)
+            if self._ground is not None:
+                self._ground.restart()
+            self.checks = CheckPoints(CHECK_MESSAGES * self.cfg.thinning.check_points)
 
     def reconfigure(self, cfg: DemBuilderConfig) -> None:
         """Apply a new config. A new grid (resolution, extent or max_cells) starts an empty
@@ -516,32 +605,44 @@ class DemPipeline:
 
     def process(self, xyz: np.ndarray, *, stamp: float = 0.0,
                 vehicle_xyz: np.ndarray | None = None,
-                intensity: np.ndarray | None = None) -> dict[str, float]:
+                intensity: np.ndarray | None = None, frame: str | None = None
+                ) -> dict[str, float]:
         """Add one cloud's ground to the rolling DEM. Returns timings in seconds.
 
         xyz: (N, 3) float64 metres, z up. stamp: seconds. vehicle_xyz: (3,) the UAV
         position, metres: a rolling window (`dem.extent` > 0) is centred on it (None: on
         the ground's mean). intensity: (N,) for the K-means ground source (None: geometry
-        only)."""
+        only). frame: the cloud's (None: not known); with the stamp it tells when the
+        stream starts over, and the DEM with it (:class:`Timeline`)."""
         t0 = time.perf_counter()
         xyz = points_xyz(xyz, "DEM builder")
+        self._went_on(stamp, frame)
         if len(xyz) == 0:
             self.last_added = 0
             return {"ground": 0.0, "update": 0.0, "total": 0.0}
         ground = self.ground_of(xyz, stamp=stamp, intensity=intensity)
         t1 = time.perf_counter()
-        timings = self.add_ground(xyz[ground], stamp=stamp, vehicle_xyz=vehicle_xyz)
+        timings = self._add(xyz[ground], stamp=stamp, vehicle_xyz=vehicle_xyz)
         return {"ground": t1 - t0, "update": timings["update"],
                 "total": t1 - t0 + timings["update"]}
 
     def add_ground(self, ground_xyz: np.ndarray, *, stamp: float = 0.0,
                    vehicle_xyz: np.ndarray | None = None,
-                   height_above_ground: np.ndarray | None = None) -> dict[str, float]:
+                   height_above_ground: np.ndarray | None = None,
+                   frame: str | None = None) -> dict[str, float]:
         """Add ground points (G, 3) float64 metres found elsewhere (the obstacle detector's,
         in `replay`) to the rolling DEM; with their height above the detector's surface
         (G,) m, only the bare earth (:func:`bare_earth`). Then `thinning.check_points` of
         them are held out (`checks`, to measure the DEM: :meth:`check_accuracy`) and
-        `thinning.keep` of the rest go into the DEM. Returns timings in seconds."""
+        `thinning.keep` of the rest go into the DEM. Returns timings in seconds. frame:
+        as :meth:`process`'s."""
+        self._went_on(stamp, frame)
+        return self._add(ground_xyz, stamp=stamp, vehicle_xyz=vehicle_xyz,
+                         height_above_ground=height_above_ground)
+
+    def _add(self, ground_xyz: np.ndarray, *, stamp: float,
+             vehicle_xyz: np.ndarray | None = None,
+             height_above_ground: np.ndarray | None = None) -> dict[str, float]:
         from lidar_obstacles.core.dem import thin
 
         t0 = time.perf_counter()

@@ -21,6 +21,7 @@ from lidar_obstacles.ros.stages import DemStage, Pose
 class DemBuilderNode(PipelineNode):
     config_cls = DemBuilderConfig
     services_wait = True  # save_dem waits for the worker thread (node_executor)
+    remembers = "the DEM and its ground context"
 
     def __init__(self) -> None:
         super().__init__("dem_builder")
@@ -49,6 +50,7 @@ class DemBuilderNode(PipelineNode):
 
     def process_cloud(self, msg: PointCloud2, pose: Pose | None) -> tuple[int, int]:
         stats = self.stage.process(msg, pose)
+        self.note_restart(stats["restart"])
         self._dirty = True
         # the cloud's finite points, and the ground points that went into the DEM
         return stats["points_in"], stats["points_out"]
@@ -70,6 +72,9 @@ class DemBuilderNode(PipelineNode):
         self._due = self._dirty = False
         for topic, out in self.stage.dem_outputs():
             self.pubs[topic].publish(out)
+        if self.stage.coarse_warning and "coarse_dem" not in self._warned:
+            self._warned.add("coarse_dem")
+            self.get_logger().warning(self.stage.coarse_warning)
 
     def extra_diagnostics(self) -> dict[str, str]:
         """The DEM at its held-out check points, as of the last publish."""

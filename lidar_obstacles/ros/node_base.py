@@ -139,6 +139,8 @@ class PipelineNode(Node):
 
     config_cls: type
     out_key: str = "points_out"  # the stage's stats entry counted as points out
+    # what a cloud that starts the stream over makes the node forget (`note_restart`)
+    remembers: str = "nothing"
     stage: Any  # made by the subclass: DetectorStage, DemStage or SimplifierStage
     pubs: dict[str, Any]  # its publishers, by topic
 
@@ -151,7 +153,7 @@ class PipelineNode(Node):
         self._stage_cfg = self.cfg  # the stage's
         on_parameter_change(self, lambda: self.cfg, self._apply_config)
         self.poses = PoseBuffer()
-        self._warned: set[int] = set()  # the kinds of warning about the clouds said
+        self._warned: set[int | str] = set()  # the kinds of warning about the clouds said
         self.create_subscription(Odometry, "odom", self._on_odometry,
                                  QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT))
         self._points_sub: Any = None
@@ -169,7 +171,8 @@ class PipelineNode(Node):
         self.stats: dict[str, Any] = {"received": 0, "processed": 0, "rejected": 0,
                                       "dropped_no_pose": 0, "dropped_superseded": 0,
                                       "lost": 0, "failed": 0, "points_in": 0,
-                                      "points_out": 0, "odometry_ignored": 0}
+                                      "points_out": 0, "odometry_ignored": 0,
+                                      "restarts": 0}
         self.reject_reasons: collections.Counter[str] = collections.Counter()
         self._dropped_reported = 0  # clouds dropped as of the last diagnostics
         self._received_reported = 0  # ... and received
@@ -343,9 +346,18 @@ class PipelineNode(Node):
         returns, are no points; `replay` counts the same) and the stats' `out_key`.
         Stages that publish on their own schedule (the DEM) override this."""
         outputs, stats = self.stage.process(msg, pose)
+        self.note_restart(stats.get("restart", ""))
         for topic, out in outputs:
             self.pubs[topic].publish(out)
         return stats["points_in"], stats[self.out_key]
+
+    def note_restart(self, why: str) -> None:
+        """Count, and say, a cloud that started the stream over (`why`; "" when it did
+        not): what the node remembered of the clouds before it is forgotten."""
+        if why:
+            self.stats["restarts"] += 1
+            self.get_logger().warning(f"started afresh, forgetting {self.remembers}: {why}",
+                                      throttle_duration_sec=WARN_THROTTLE_S)
 
     def _on_odometry(self, msg: Odometry) -> None:
         problem = self.poses.add(pose_of_odometry(msg))

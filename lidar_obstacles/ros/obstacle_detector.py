@@ -14,6 +14,7 @@ from lidar_obstacles.ros.stages import DetectorStage
 class ObstacleDetectorNode(PipelineNode):
     config_cls = ObstacleDetectorConfig
     out_key = "obstacles"
+    remembers = "the ground context and the towers, wires and roofs seen"
 
     def __init__(self) -> None:
         super().__init__("obstacle_detector")

@@ -261,6 +261,7 @@ class ReplayStats:
     latencies: list[float] = field(default_factory=list)
     reject_reasons: dict[str, int] = field(default_factory=dict)  # by kind (reason_key)
     last_reject: str | None = None  # the latest rejected cloud's error, in full
+    restarts: int = 0  # clouds that started the stream over (core.pipeline.Timeline)
 
     def summary(self) -> dict:
         lat = np.array(self.latencies) if self.latencies else np.zeros(1)
@@ -271,14 +272,16 @@ class ReplayStats:
                 if self.wall_seconds > 0 else None,
                 "latency_p50_ms": round(1e3 * float(np.percentile(lat, 50)), 2),
                 "latency_p95_ms": round(1e3 * float(np.percentile(lat, 95)), 2),
-                "reject_reasons": self.reject_reasons, "last_reject": self.last_reject}
+                "reject_reasons": self.reject_reasons, "last_reject": self.last_reject,
+                "restarts": self.restarts}
 
     def counts(self) -> dict[str, int]:
         """The counts `obstacle_detector` would give in its diagnostics for these clouds."""
         no_pose = self.reject_reasons.get(NO_POSE, 0)
         return {"received": self.messages + self.rejected, "processed": self.messages,
                 "rejected": self.rejected - no_pose, "dropped_no_pose": no_pose,
-                "points_in": self.points, "points_out": self.points_out}
+                "points_in": self.points, "points_out": self.points_out,
+                "restarts": self.restarts}
 
 
 def load_configs(params_file: Path | None, dem_base: DemBuilderConfig | None = None
@@ -392,12 +395,14 @@ class DemSchedule:
         """The DEM messages and the diagnostics due at this cloud (all of them at the end
         of the bag)."""
         items = []
-        if self.next_ns is None and not end:
+        # (a clock that went back more than a period starts the timers again, as ROS's do)
+        if (self.next_ns is None or stamp_ns + self.period_ns < self.next_ns) and not end:
             self.next_ns = stamp_ns + self.period_ns
         elif end or stamp_ns >= self.next_ns:  # type: ignore[operator]
             self.next_ns = stamp_ns + self.period_ns
             items = self.outputs(stamp_ns, record_ns)
-        if self.diagnostics_ns is None and not end:
+        if (self.diagnostics_ns is None or stamp_ns + DIAGNOSTICS_PERIOD_NS
+                < self.diagnostics_ns) and not end:
             self.diagnostics_ns = stamp_ns + DIAGNOSTICS_PERIOD_NS
         elif end or stamp_ns >= self.diagnostics_ns:  # type: ignore[operator]
             self.diagnostics_ns = stamp_ns + DIAGNOSTICS_PERIOD_NS
@@ -502,7 +507,8 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
         nonlocal diagnostics_ns, dropped_reported
         if detector is None:
             return
-        if diagnostics_ns is None and not end:
+        if (diagnostics_ns is None or stamp_ns + DIAGNOSTICS_PERIOD_NS
+                < diagnostics_ns) and not end:  # (as DemSchedule's: the clock went back)
             diagnostics_ns = stamp_ns + DIAGNOSTICS_PERIOD_NS
         elif end or stamp_ns >= diagnostics_ns:  # type: ignore[operator]
             diagnostics_ns = stamp_ns + DIAGNOSTICS_PERIOD_NS
@@ -569,7 +575,7 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                         # the detector's ground is all the DEM needs: nothing to parse
                         deferred.append(DemWork(
                             work.stamp_ns, record.stamp_ns, work.frame_id,
-                            pose.position if pose is not None else None, *work.dem_ground(),
+                            work.ground.vehicle_xyz, *work.dem_ground(),
                             dict(stats.reject_reasons), points_in=n_points))
                 dem_items: list = []
                 if schedule is not None:
@@ -584,6 +590,15 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
                 stats.last_reject = str(exc)
                 yield from diagnostics_due(stamp_ns, record.stamp_ns)
                 continue
+            restart = (deferred[0].work.ground.restart if detector is not None else
+                       schedule.stage.pipeline.last_restart if schedule is not None else "")
+            if restart:
+                stats.restarts += 1
+                if "restart" not in warned:
+                    bar.write(f"{desc}: warning: cloud {seen} started afresh, what was "
+                              f"remembered forgotten: {restart} (and any more such; "
+                              "counted in the summary's restarts)", file=sys.stderr)
+                    warned.add("restart")
             if detector is None:  # (the detector's time is counted when its work is done)
                 stats.latencies.append(time.perf_counter() - t0)
             stats.messages += 1

@@ -139,6 +139,24 @@ def coarse_xyz_warning(msg, pose: Pose | None, cfg: NodeInputConfig) -> str | No
             "float64, or give odometry in a local frame")
 
 
+def coarse_dem_warning(grid: DemGrid) -> str | None:
+    """What to say, once, when the `dem` cloud's FLOAT32 x y (the contract's type) cannot
+    tell the grid's cells apart: beyond ~2 000 km from the frame's origin at 0.25 m cells
+    (a UTM frame's northings: 800 rows gave 400 distinct y). None when all is well."""
+    if grid.elevation.size == 0:
+        return None
+    rows, cols = grid.shape
+    far = float(np.max(np.abs(np.asarray(grid.origin, float)
+                              + np.array([cols, rows]) * grid.resolution)))
+    step = float(np.spacing(np.float32(far)))
+    if step <= grid.resolution / 4:
+        return None
+    return (f"the DEM lies {far:.0f} m from its frame's origin, where the `dem` cloud's "
+            f"FLOAT32 x y hold a position only to {step:g} m, against cells of "
+            f"{grid.resolution:g} m: take `dem_image` with `dem_info` (exact), or a local "
+            "frame")
+
+
 def prepare(msg, *, keep_non_finite: bool, max_points: int, pose: Pose | None,
             transform: bool, widen_xyz: bool = False) -> Prepared:
     """Decode a PointCloud2 and, when `transform`, move it into the pose's frame (a
@@ -219,6 +237,16 @@ class DetectorStage:
         self.cfg = cfg
         self.pipeline.reconfigure(cfg)
 
+    @staticmethod
+    def vehicle(pose: Pose | None, frame_id: str) -> np.ndarray | None:
+        """(3,) m the vehicle's position in the cloud's (output) frame, where the clearance
+        grid and the DEM's window centre on it; None when the pose is in another frame
+        (odometry in `odom`, clouds in `map`, without `use_odometry`): a grid around the
+        pose's numbers in the wrong frame held nothing of the cloud."""
+        if pose is None or pose.frame_id.lstrip("/") != frame_id.lstrip("/"):
+            return None
+        return pose.position
+
     def marker_lifetime(self, stamp_ns: int) -> float:
         """Seconds the markers of the cloud stamped stamp_ns stay (`obstacles.marker_lifetime`,
         0 = until replaced), stretched to three times the interval since the previous
@@ -243,7 +271,7 @@ class DetectorStage:
         prep, finite = prepare_for(msg, cfg, pose)
         step = self.pipeline.ground_step(
             prep.xyz[finite], stamp=prep.stamp_ns * 1e-9,
-            vehicle_xyz=pose.position if pose is not None else None)
+            vehicle_xyz=self.vehicle(pose, prep.frame_id), frame=prep.frame_id)
         return DetectorWork(prep.points, prep.stamp_ns, prep.frame_id, finite, step,
                             time.perf_counter() - t0)
 
@@ -293,7 +321,7 @@ class DetectorStage:
                  "obstacles": int((~ground).sum()),
                  "objects": len(result.objects), "timings": dict(result.timings),
                  "seconds": work.seconds + seconds + time.perf_counter() - t0,
-                 "classes": classes}
+                 "classes": classes, "restart": work.ground.restart}
         return out, stats
 
 
@@ -308,6 +336,7 @@ class DemStage:
         self.last_stamp_ns = 0
         # the DEM at its held-out check points, as of the last `dem_outputs`
         self.check_stats: dict[str, float | int | None] = {}
+        self.coarse_warning: str | None = None  # of the last `dem_outputs`'s grid
 
     def reconfigure(self, cfg: DemBuilderConfig) -> None:
         self.cfg = cfg
@@ -341,7 +370,7 @@ class DemStage:
                        pose=pose, transform=cfg.use_odometry)
         self.frame_id = prep.frame_id
         self.last_stamp_ns = prep.stamp_ns
-        vehicle = pose.position if pose is not None else None
+        vehicle = DetectorStage.vehicle(pose, prep.frame_id)
         if cfg.dem.ground_source == "input":
             hag = _attr(prep.points, "height_above_ground")
             if hag is None:  # (a raw cloud would all go into the DEM, crowns and roofs)
@@ -352,13 +381,16 @@ class DemStage:
             ground = slice(None) if classes is None else classes == GROUND
             timings = self.pipeline.add_ground(prep.xyz[ground], stamp=prep.stamp_ns * 1e-9,
                                                vehicle_xyz=vehicle,
-                                               height_above_ground=hag[ground])
+                                               height_above_ground=hag[ground],
+                                               frame=prep.frame_id)
         else:
             timings = self.pipeline.process(prep.xyz, stamp=prep.stamp_ns * 1e-9,
                                             vehicle_xyz=vehicle,
-                                            intensity=_attr(prep.points, "intensity"))
+                                            intensity=_attr(prep.points, "intensity"),
+                                            frame=prep.frame_id)
         return {"points_in": len(prep.points), "points_out": self.pipeline.last_added,
-                "timings": timings, "seconds": time.perf_counter() - t0}
+                "timings": timings, "seconds": time.perf_counter() - t0,
+                "restart": self.pipeline.last_restart}
 
     def add_ground(self, ground_xyz: np.ndarray, ground_hag: np.ndarray, *, stamp_ns: int,
                    frame_id: str, points_in: int, vehicle_xyz: np.ndarray | None = None
@@ -373,9 +405,10 @@ class DemStage:
         self.last_stamp_ns = stamp_ns
         timings = self.pipeline.add_ground(ground_xyz, stamp=stamp_ns * 1e-9,
                                            vehicle_xyz=vehicle_xyz,
-                                           height_above_ground=ground_hag)
+                                           height_above_ground=ground_hag, frame=frame_id)
         return {"points_in": points_in, "points_out": self.pipeline.last_added,
-                "timings": timings, "seconds": time.perf_counter() - t0}
+                "timings": timings, "seconds": time.perf_counter() - t0,
+                "restart": self.pipeline.last_restart}
 
     def grid(self) -> DemGrid:
         """The current DEM (its empty cells near new data filled first)."""
@@ -386,6 +419,7 @@ class DemStage:
         `check_stats` are measured on that grid."""
         grid = self.grid()
         self.check_stats = self.pipeline.check_accuracy(grid)
+        self.coarse_warning = coarse_dem_warning(grid)
         if grid.elevation.size == 0:
             return []
         hdr = messages.header(self.last_stamp_ns if stamp_ns is None else stamp_ns,
