@@ -294,3 +294,23 @@ def test_a_dem_float32_cannot_hold_is_said():
     assert said is not None and "hold a position only to 0.5 m" in said
     assert coarse_dem_warning(grid([500000.0, 5700000.0], 2.0)) is None
     assert coarse_dem_warning(grid([-100.0, -100.0], 0.05)) is None
+
+
+def test_a_late_odometry_pose_goes_in_its_place():
+    """One pose 50 ms older than the last (best-effort odometry reordered, two publishers)
+    emptied the buffer: the clouds before it waited for poses or were dropped. A clock
+    gone back by more than a second still starts it over."""
+    from lidar_obstacles.ros.node_base import PoseBuffer
+    from lidar_obstacles.ros.stages import Pose
+
+    def at(s: float) -> Pose:
+        return Pose(int(s * 1e9), np.array([s, 0.0, 50.0]), np.array([0.0, 0.0, 0.0, 1.0]),
+                    "map")
+
+    poses = PoseBuffer()
+    for s in (10.0, 10.1, 10.2, 10.15):
+        poses.add(at(s))
+    assert [poses.nearest(int(s * 1e9), 0.01).position[0] for s in (10.0, 10.1, 10.15, 10.2)] \
+        == [10.0, 10.1, 10.15, 10.2]
+    poses.add(at(3.0))
+    assert poses.nearest(int(10.2e9), 0.01) is None and poses.nearest(int(3e9), 0.01) is not None

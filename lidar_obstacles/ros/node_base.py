@@ -38,6 +38,7 @@ from sensor_msgs.msg import PointCloud2
 
 from lidar_obstacles.core.arrays import (release_free_memory, reuse_freed_memory,
                                          single_threaded_blas)
+from lidar_obstacles.core.pipeline import RESTART_AFTER_S
 from lidar_obstacles.errors import ConfigError, LidarObstaclesError, count_reason
 from lidar_obstacles.ros import messages
 from lidar_obstacles.ros.params import declare_config, on_parameter_change
@@ -85,11 +86,14 @@ class PoseBuffer:
         return None
 
     def _add(self, pose: Pose) -> None:
-        if self._stamps and pose.stamp_ns < self._stamps[-1]:
+        if self._stamps and pose.stamp_ns < self._stamps[-1] - RESTART_AFTER_S * 1e9:
             self._stamps.clear()  # time jumped back (bag loop): start over
             self._poses.clear()
-        self._stamps.append(pose.stamp_ns)
-        self._poses.append(pose)
+        # a pose a little late (best-effort odometry reordered, two publishers) goes in
+        # its place: it emptied the buffer, and the clouds waited or were dropped
+        at = bisect.bisect_right(self._stamps, pose.stamp_ns)
+        self._stamps.insert(at, pose.stamp_ns)
+        self._poses.insert(at, pose)
         while self._stamps and self._stamps[0] < pose.stamp_ns - self.horizon_ns:
             self._stamps.popleft()
             self._poses.popleft()
