@@ -261,8 +261,10 @@ def dem_comparison(xyz: np.ndarray, reference: np.ndarray, predicted: np.ndarray
     height_above_ground (N,) m, the predicted ground is what `dem_builder` builds on, its
     bare earth (`dem.ground_band`, `dem.patch_*`), as `bench_dem.py` compares it.
 
-    Returns {"grid": grid_errors, "check_points": grid_errors, "reference_dem": DemGrid,
-    "predicted_dem": DemGrid} (the grids for pictures; not JSON)."""
+    Returns {"grid": grid_errors with "coverage" (the share of the reference DEM's cells
+    inside the data that the predicted DEM has), "check_points": grid_errors,
+    "reference_dem": DemGrid, "predicted_dem": DemGrid} (the grids for pictures; not
+    JSON)."""
     from lidar_obstacles.core.dem import build_dem
     from lidar_obstacles.core.metrics import GROUND_CODES, grid_errors, grid_values_at
     from lidar_obstacles.core.pipeline import bare_earth_of
@@ -284,9 +286,13 @@ def dem_comparison(xyz: np.ndarray, reference: np.ndarray, predicted: np.ndarray
     pred_dem = build_dem(xyz[pred_ground & keep], cfg=cfg, bounds=box)
     inside = build_dem(xyz, cfg=replace(cfg, {"dem.fill_distance": 0.0}),
                        bounds=box).count > 0
-    out: dict[str, Any] = {"grid": grid_errors(np.where(inside, ref_dem.elevation, np.nan),
-                                               pred_dem.elevation),
-                           "reference_dem": ref_dem, "predicted_dem": pred_dem}
+    ref_cells = np.where(inside, ref_dem.elevation, np.nan)
+    grid = grid_errors(ref_cells, pred_dem.elevation)
+    # the share of those cells the predicted DEM has at all: the errors are of the cells
+    # both have, and a ground lost over a whole area showed only in a smaller n
+    n_ref = int(np.isfinite(ref_cells).sum())
+    grid["coverage"] = grid["n"] / n_ref if n_ref else None
+    out: dict[str, Any] = {"grid": grid, "reference_dem": ref_dem, "predicted_dem": pred_dem}
     if len(held):
         est = grid_values_at(pred_dem.elevation, xyz[held, :2],
                              resolution=pred_dem.resolution, origin=tuple(pred_dem.origin))

@@ -690,6 +690,7 @@ EXPLANATIONS: dict[str, str] = {
     "max_abs_m": "largest absolute height error, metres",
     "r2": "coefficient of determination 1 − SS_res / SS_tot (seed 000: 0.887)",
     "n": "values compared",
+    "coverage": "share of the reference DEM's cells inside the data that the DEM has",
     "p50_s": "median latency, seconds",
     "p95_s": "95th percentile latency, seconds",
     "p99_s": "99th percentile latency, seconds",
@@ -702,7 +703,7 @@ EXPLANATIONS: dict[str, str] = {
 _PERCENT_KEYS = {
     "overall_accuracy", "users_accuracy", "producers_accuracy", "type_i", "type_ii",
     "total_error", "share_kappa_gt_0_8", "share_kappa_gt_0_6", "wire_as_ground",
-    "tower_as_ground", "obstacle_as_ground", "reduction",
+    "tower_as_ground", "obstacle_as_ground", "reduction", "coverage",
 }
 
 _CSS = """

@@ -51,6 +51,34 @@ def test_evaluate_measures_the_predicted_dem_against_the_reference(tmp_path, mon
     assert checks["n"] > 80 and checks["rmse_m"] < 0.5
 
 
+def test_dem_errors_say_what_share_of_the_survey_they_cover(tmp_path, monkeypatch):
+    """Ground lost over a whole area leaves its cells out of the DEM errors: that showed
+    only in a smaller n. `coverage` says it."""
+    import laspy
+
+    from lidar_obstacles import evaluate as ev
+    from lidar_obstacles.config import DemBuilderConfig
+
+    g = np.arange(0, 60, 0.5)
+    x, y = (a.ravel() for a in np.meshgrid(g, g))
+    las = laspy.LasData(laspy.LasHeader(point_format=1, version="1.2"))
+    las.x, las.y, las.z = x, y, 0.1 * x
+    las.classification = np.full(len(x), 2)
+    las.write(str(tmp_path / "flat.las"))
+
+    def west_half_ground(inp, cfg, progress=False):
+        for cloud in inp.clouds:
+            cloud.predicted = np.where(cloud.xyz[:, 0] < 30, 2, 1).astype(np.uint8)
+        return []
+
+    monkeypatch.setattr(ev, "run_detector", west_half_ground)
+    grid = ev.evaluate(tmp_path / "flat.las")["dem"]["grid"]
+    # the west half, and what the interpolator fills beyond it (`dem.fill_distance`)
+    fill = DemBuilderConfig().dem.fill_distance
+    assert grid["coverage"] == pytest.approx(min(30 + fill, 60) / 60, abs=0.02)
+    assert grid["n"] == pytest.approx(grid["coverage"] * 3600, abs=1)
+
+
 def test_evaluate_replay_output_and_report(tmp_path):
     run_cli("simulate", tmp_path / "flight", "--duration", "2", "--seed", "2",
             "--scene", "corridor")
