@@ -142,7 +142,7 @@ def test_clearance_grid_by_hand():
 
     cfg = replace(ObstacleDetectorConfig(), {"clearance.size": 5.0, "clearance.resolution": 1.0,
                                              "clearance.max_height": 50.0}).clearance
-    cells, origin, res = clearance_grid(xyz, classes, hag, center_xy=np.array([2.5, 2.5]),
+    cells, origin, res = clearance_grid(xyz, classes, hag, centre_xy=np.array([2.5, 2.5]),
                                         cfg=cfg)
     assert res == 1.0 and tuple(origin) == (0.0, 0.0) and cells.shape == (5, 5)
     assert cells[0, 0] == 0  # ground only

@@ -2,7 +2,8 @@
 
 A UAV scan message is a thin strip; filtering it alone judges the ground at its edges
 from one side only. The model keeps, per `context.cell` cell, the lowest ground height of
-recent messages, so a new strip is filtered with the ground around it. Bounded: cells
+the newest message that saw the cell (an older one, lower or not, gives way), so a new
+strip is filtered with the ground around it. Bounded: cells
 further than `context.radius` from the newest message or older than `context.seconds` are
 dropped, so memory stays flat however long the flight.
 """

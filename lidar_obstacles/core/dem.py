@@ -100,9 +100,9 @@ class Thinning:
 
 
 def tin_curvature(xyz: np.ndarray) -> np.ndarray:
-    """(N,) float64 |z - inverse-distance mean of the Delaunay neighbours' z| (m): a
-    discrete Laplacian, large where the terrain bends, 0 on any plane. Zeros when the
-    points cannot be triangulated."""
+    """(N,) float64 |z - the plane of the Delaunay neighbours at the point| (m,
+    :func:`neighbour_residual`): large where the terrain bends, 0 on any plane. Zeros
+    when the points cannot be triangulated."""
     n = len(xyz)
     if degeneracy(xyz[:, :2]):
         return np.zeros(n)

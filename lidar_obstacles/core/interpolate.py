@@ -60,17 +60,39 @@ def one_blas_thread() -> ContextManager:
 
 def neighbour_residual(xyz: np.ndarray, indptr: np.ndarray, neighbours: np.ndarray
                        ) -> np.ndarray:
-    """(N,) float64 |z - the inverse-distance mean of the neighbours' z| (m) of (N, 3)
-    points, their neighbours given as a Delaunay's `vertex_neighbor_vertices` (indptr
-    (N + 1,), neighbours): a discrete Laplacian, 0 on any plane; 0 for a point with none."""
+    """(N,) float64 |z - the plane of its neighbours at the point| (m) of (N, 3) points,
+    their neighbours given as a Delaunay's `vertex_neighbor_vertices` (indptr (N + 1,),
+    neighbours): the least-squares plane through each point's neighbours, weighted by
+    1 / distance, met at the point. 0 on any plane, tilted or not (the inverse-distance
+    mean of the neighbours it was before is off on a slope wherever they are unevenly
+    spaced: a 30 % slope at 2 m spacing gave 0.05 m at the median and 0.9 m on the
+    hull); where the neighbours fix no plane (in a line), their inverse-distance mean;
+    0 for a point with none."""
     n = len(xyz)
     owner = np.repeat(np.arange(n), np.diff(indptr))
-    w = 1.0 / np.maximum(np.hypot(*(xyz[owner, :2] - xyz[neighbours, :2]).T), 1e-9)
-    wsum = np.bincount(owner, weights=w, minlength=n)
-    pred = np.bincount(owner, weights=w * xyz[neighbours, 2], minlength=n)
+    dx, dy, dz = (xyz[neighbours] - xyz[owner]).T  # the neighbours seen from the point
+    w = 1.0 / np.maximum(np.hypot(dx, dy), 1e-9)
+
+    def total(v: np.ndarray) -> np.ndarray:
+        return np.bincount(owner, weights=w * v, minlength=n)
+
+    one = np.ones_like(w)
+    sw, sx, sy, sz = total(one), total(dx), total(dy), total(dz)
+    sxx, sxy, syy, sxz, syz = total(dx * dx), total(dx * dy), total(dy * dy), \
+        total(dx * dz), total(dy * dz)
+    # normal equations of dz = a + b dx + c dy, one symmetric 3 x 3 system a point, solved
+    # for a (the plane's height over the point's own) by Cramer's rule, all at once (40 ->
+    # 23 ms for 50 000 points against a batched np.linalg.solve)
+    minor_xy = sxx * syy - sxy * sxy
+    det = sw * minor_xy - sx * (sx * syy - sxy * sy) + sy * (sx * sxy - sxx * sy)
+    det_a = sz * minor_xy - sx * (sxz * syy - sxy * syz) + sy * (sxz * sxy - sxx * syz)
+    # (Hadamard: the determinant of such a matrix is at most its diagonal's product; far
+    # below it, the neighbours lie in a line)
+    plane = det > 1e-9 * sw * sxx * syy
     out = np.zeros(n)
-    has = wsum > 0
-    out[has] = np.abs(xyz[has, 2] - pred[has] / wsum[has])
+    out[plane] = np.abs(det_a[plane] / det[plane])
+    line = ~plane & (sw > 0)
+    out[line] = np.abs(sz[line] / sw[line])
     return out
 
 

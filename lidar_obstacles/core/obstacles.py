@@ -1608,9 +1608,9 @@ def _objects(xyz: np.ndarray, hag: np.ndarray, classes: np.ndarray,
 
 
 def clearance_grid(xyz: np.ndarray, classes: np.ndarray, height_above_ground: np.ndarray, *,
-                   center_xy: np.ndarray, cfg: ClearanceConfig
+                   centre_xy: np.ndarray, cfg: ClearanceConfig
                    ) -> tuple[np.ndarray, np.ndarray, float]:
-    """Occupancy grid around center_xy (2,) m: per cell the tallest obstacle above ground
+    """Occupancy grid around centre_xy (2,) m: per cell the tallest obstacle above ground
     scaled to 0..100 (cfg.max_height -> 100); -1 where no point fell; 0 where only
     ground/low points. xyz (N, 3) m, classes (N,) ASPRS codes, height_above_ground (N,) m
     (NaN taken as 0).
@@ -1619,7 +1619,7 @@ def clearance_grid(xyz: np.ndarray, classes: np.ndarray, height_above_ground: np
     resolution m)."""
     res = cfg.resolution
     side = max(1, int(round(cfg.size / res)))
-    origin = np.floor((np.asarray(center_xy, float) - cfg.size / 2) / res) * res
+    origin = np.floor((np.asarray(centre_xy, float) - cfg.size / 2) / res) * res
     cells = np.full((side, side), -1, np.int8)
     # one column at a time (no (N, 2) temporaries); a NaN x or y compares false: outside
     col, row = ((xyz[:, a] - origin[a]) / res for a in (0, 1))

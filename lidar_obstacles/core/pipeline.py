@@ -202,7 +202,9 @@ class ObstacleResult:
 
     ground: (N,) bool. classes: (N,) uint8 ASPRS code (2 ground). height_above_ground: (N,)
     float32 metres (NaN where no surface). object_id: (N,) int32, -1 outside objects.
-    objects: the obstacle objects (boxes). timings: seconds per stage, plus "total".
+    objects: the obstacle objects (boxes). clearance: the grid around the vehicle; for
+    an empty cloud all unknown, and None when no position is known yet (no pose, no cloud
+    before). timings: seconds per stage, plus "total".
     edges: (N,) bool, the obstacles' Gaussian-map feature points (crease, edge, corner),
     or None when `features.enabled` is off.
     """
@@ -393,7 +395,7 @@ class ObstacleDetector:
             clearance = None
             if centre is not None:
                 cells, origin, res = clearance_grid(np.zeros((0, 3)), np.zeros(0, np.uint8),
-                                                    np.zeros(0, np.float32), center_xy=centre,
+                                                    np.zeros(0, np.float32), centre_xy=centre,
                                                     cfg=cfg.clearance)
                 clearance = ClearanceGrid(cells, np.asarray(origin, float), float(res))
             return ObstacleResult(empty, np.zeros(0, np.uint8), np.zeros(0, np.float32),
@@ -429,7 +431,7 @@ class ObstacleDetector:
                   else (lo + hi) / 2.0)
         self._clearance_centre = centre
         cells, origin, res = clearance_grid(xyz, ob.classes, step.height_above_ground,
-                                            center_xy=centre, cfg=cfg.clearance)
+                                            centre_xy=centre, cfg=cfg.clearance)
         t5 = time.perf_counter()
         timings = {**step.timings, "obstacles": t4 - t3, "clearance": t5 - t4}
         edges = None

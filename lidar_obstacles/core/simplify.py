@@ -6,8 +6,10 @@ restarts; each normal cluster is a candidate simplified cloud, and the one whose
 TIN, rasterised on 0.125 m cells, correlates best with the raster of all points is kept
 (81.833 % reduction, r = 0.890). Here:
 
-- ``pca_normals``: K-neighbourhood PCA normals, vectorised, oriented z >= 0.
-- ``tin_raster_correlation``: the paper's validation, with a linear TIN.
+- ``pca_normals``: K-neighbourhood PCA normals, vectorised, oriented z >= 0 (the checked
+  public face of the normals ``simplify`` computes).
+- ``tin_raster_correlation``: the paper's validation, with a linear TIN (``simplify``
+  validates the same way, the full cloud's raster made once for all its candidates).
 - ``simplify`` with ``method="normal_cluster"``: the paper's protocol, its by-eye step made
   automatic (below); ``method="normal_space"``: the improvement, ``keep`` of the points
   spread over every normal cluster AND over space (one representative per normal cluster

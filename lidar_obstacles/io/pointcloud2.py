@@ -620,5 +620,6 @@ __all__ = [
     "read_points",
     "select_points",
     "to_native",
+    "with_xyz",
     "xyz_of",
 ]

@@ -187,13 +187,14 @@ def tiled_features(xyz: np.ndarray, *, cfg: FeaturesConfig,
         tiles.append((tile, near))
     # by points (the margins' included), not tiles: a 50 m survey is one tile of ~20 s
     bar = _progress(None, sum(len(near) for _, near in tiles), "features", unit="pt")
+    inside = np.zeros(len(xyz), bool)  # (one mask, set and cleared per tile)
     try:
         for tile, near in tiles:
-            inside = np.zeros(len(xyz), bool)
             inside[tile] = True
             found = gaussian_map_features(xyz[near], cfg=cfg, rng=rng,
                                           progress=bar.update).feature
             found_here[near[found & inside[near]]] = True
+            inside[tile] = False
     finally:
         bar.close()
     feature[near_cloud] = found_here

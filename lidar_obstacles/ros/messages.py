@@ -136,6 +136,10 @@ def odometry(stamp_ns: int, frame_id: str, child_frame_id: str, position, orient
 # The counts of clouds that gave no output, each for its own reason: any of them since the
 # last report makes a node's diagnostics WARN ("failed", a bug, makes them ERROR).
 DROPPED = ("rejected", "dropped_no_pose", "dropped_superseded", "lost", "failed")
+# `/diagnostics` gives latency percentiles of the last LATENCY_WINDOW clouds and the rate
+# over the last RATE_WINDOW (the nodes and `replay` alike)
+LATENCY_WINDOW = 200
+RATE_WINDOW = 50
 
 
 def rate_hz(stamps_s: Sequence[float], now_s: float | None = None) -> float:

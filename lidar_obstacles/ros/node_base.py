@@ -99,7 +99,8 @@ class PoseBuffer:
             self._poses.popleft()
 
     def nearest(self, stamp_ns: int, max_age_s: float, wait_s: float = 0.0) -> Pose | None:
-        """The pose nearest to stamp_ns among those held, if no more than max_age_s away;
+        """The pose nearest to stamp_ns among those held, if no more than max_age_s away
+        (before or after it: odometry's `odometry_max_age` is a tolerance either side);
         else None. With wait_s > 0, a pose that is not there yet is waited for, up to
         wait_s seconds (wall clock), unless later poses show none will come close: live,
         odometry may arrive after the cloud it belongs to (a busy executor, a lost
@@ -181,8 +182,10 @@ class PipelineNode(Node):
         self._dropped_reported = 0  # clouds dropped as of the last diagnostics
         self._received_reported = 0  # ... and received
         self._warned_at: dict[str, float] = {}  # the last warning of each kind of drop
-        self.latencies: collections.deque[float] = collections.deque(maxlen=200)
-        self.recv_times: collections.deque[float] = collections.deque(maxlen=50)
+        self.latencies: collections.deque[float] = collections.deque(
+            maxlen=messages.LATENCY_WINDOW)
+        self.recv_times: collections.deque[float] = collections.deque(
+            maxlen=messages.RATE_WINDOW)
         self._inbox: collections.deque[PointCloud2] = collections.deque(
             maxlen=self.cfg.input.depth)  # (read-only: fixed for the node's life)
         self._inbox_lock = threading.Lock()

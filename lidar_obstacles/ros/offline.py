@@ -58,8 +58,7 @@ LEAP_SECONDS_FROM = np.array([
 # `/diagnostics` as the nodes publish it: every second (of the bag's time, here), latency
 # percentiles of the last LATENCY_WINDOW clouds, the rate over the last RATE_WINDOW.
 DIAGNOSTICS_PERIOD_NS = 1_000_000_000
-LATENCY_WINDOW = 200
-RATE_WINDOW = 50
+LATENCY_WINDOW, RATE_WINDOW = messages.LATENCY_WINDOW, messages.RATE_WINDOW
 NO_POSE = "no odometry pose near the cloud's stamp"
 
 

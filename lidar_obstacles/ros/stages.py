@@ -442,9 +442,10 @@ class SimplifierStage:
         self.cfg = cfg
 
     def process(self, msg, pose: Pose | None = None) -> tuple[list[tuple[str, object]], dict]:
-        """Returns [("points_simplified", cloud)] and a stats dict (points in and out, the
-        TIN raster correlation of the kept points with all of them, timings). Non-finite
-        points are never kept. Raises CloudFormatError for a malformed cloud."""
+        """Returns [("points_simplified", cloud)] and a stats dict (points in and out, r:
+        the TIN raster correlation of the kept points with every clustered point, or None
+        when not computed (`SimplifyResult.r`), timings). Non-finite points are never
+        kept. Raises CloudFormatError for a malformed cloud."""
         from lidar_obstacles.core.simplify import simplify
 
         cfg = self.cfg
