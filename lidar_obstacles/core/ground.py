@@ -21,7 +21,7 @@
   A cell is an object only if it is one in a second opening too, of the surface minus its
   24 m median trend: 4.07 % -> 3.86 %, kappa 0.861 -> 0.867 (HybridSettings.trend_window);
   with every test below in place, the second opening's objects alone: 3.52 % -> 3.37 %,
-  kappa 0.880 -> 0.883 (session 30).
+  kappa 0.880 -> 0.883.
   Rejected points on the rim of a plateau of real ground points (a smooth, gentle half-disc
   whose plane passes through the point, with a drop of more than 2 m beside it) join the
   ground after the last round: 3.86 % -> 3.74 %, kappa 0.867 -> 0.872 (_rim_points).
@@ -146,7 +146,7 @@ class HybridSettings:
     # cell's lowest point before any labels: a street seen alone between roofs has only
     # roofs nearest (urban building points in ground 0.78 -> 0.92 %). A lone real ground
     # point on terrain falling faster than lone_slope beyond a strip's edge is lost: one
-    # point, where a kept echo sinks the DEM around it. Session 24: lone_slope 0.1 -> 0.05
+    # point, where a kept echo sinks the DEM around it. lone_slope 0.1 -> 0.05
     # (echoes at a strip's corner 3.6-3.7 m below ground 15-20 m off stayed), with the
     # blunder test run again without the blunders it found (LOW_ROUNDS: a deep echo
     # shielded a shallower one beside it): the urban flights' echoes in ground 5 / 7 / 1
@@ -197,7 +197,7 @@ class HybridSettings:
     # from (and, with the second, the steep-window flags, `_steep_objects`).
     # Introduced as a veto (objects of both openings): ISPRS mean total error 4.07 ->
     # 3.86 %, kappa 0.861 -> 0.867 (samp23 7.05 -> 4.96 %, samp52 3.85 -> 3.41 %, samp53
-    # 7.12 -> 6.66 %; worst samp12 3.19 -> 3.26 %). Session 30, with the later tests in
+    # 7.12 -> 6.66 %; worst samp12 3.19 -> 3.26 %). Later, with the other tests in
     # place, the second opening alone: 3.52 -> 3.37 %, kappa 0.880 -> 0.883, 6 x 6 blocks
     # with kappa > 0.8 83.3 -> 84.7 %, Type I 1.88 -> 2.13 %, Type II 8.17 -> 7.11 %
     # (samp31 2.68 -> 1.78 %, samp51 3.00 -> 2.30 %, samp54 3.22 -> 2.73 %; worst samp24
