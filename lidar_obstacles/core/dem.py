@@ -161,7 +161,10 @@ class CheckPoints:
 
     def accuracy(self, grid: DemGrid) -> dict[str, float | int | None]:
         """RMSE (m) and R^2 of the grid's elevation (nearest cell) at the check points
-        inside it with a known elevation, and how many that is (check_n)."""
+        inside it with a known elevation, and how many that is (check_n). The cell's
+        value, as a consumer of the published grid reads it at a position (grid_map's
+        default too), and every known cell counts, edges included; `evaluate` reads its
+        DEMs bilinearly (`DemGrid.sample`), which leaves the half cell at an edge out."""
         if len(self.xyz) == 0 or grid.elevation.size == 0:
             return {"check_rmse_m": None, "check_r2": None, "check_n": 0}
         rows, cols = grid.elevation.shape
