@@ -1395,3 +1395,22 @@ def test_a_level_line_on_a_known_roof_is_no_wire_but_a_wire_over_one_is():
     assert wire_share(20.0, 0.0) == 1.0
     res = classify_obstacles(xyz, ground, hag, cfg=CFG.obstacles)
     assert (res.classes[~ground] == 14).all()
+
+
+def test_a_thin_wires_lone_echoes_on_its_line_are_wire_not_noise():
+    """An earth wire is hit every few metres: beyond the run found as wire, its lone
+    echoes (no neighbour within `noise_radius`) were noise, and a pair of them
+    vegetation. On the line they are the wire; off it, they stay what they were."""
+    xyz, ground, hag = _wire_strip(0.0, 30.0, 0)
+    echoes = np.array([[33.5, 5.0, 20.0], [37.5, 5.05, 20.1],
+                       [37.8, 5.05, 20.1]])  # (the last two: a piece too small)
+    # 3.6 m aside; on the line but 15 m from the wire found (WIRE_ECHO_REACH)
+    off = np.array([[35.0, 8.6, 20.0], [45.0, 5.0, 20.0]])
+    xyz = np.concatenate([xyz, echoes, off])
+    ground = np.concatenate([ground, np.zeros(len(echoes) + len(off), bool)])
+    hag = np.concatenate([hag, np.full(len(echoes) + len(off), 20.0, np.float32)])
+    res = classify_obstacles(xyz, ground, hag, cfg=CFG.obstacles)
+    wire_id = np.unique(res.object_id[res.classes == 14])
+    assert res.classes[-5:-2].tolist() == [14] * 3
+    assert len(wire_id) == 1 and (res.object_id[-5:-2] == wire_id[0]).all()
+    assert res.classes[-2:].tolist() == [7, 7]  # noise, off the line or out of reach
