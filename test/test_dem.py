@@ -461,3 +461,43 @@ def test_ground_blunders_keep_ground_cut_off_on_a_slope():
     xy = xy[(r < 3.0) | (r > 9.0)]
     xyz = np.column_stack([xy, 0.5 * xy[:, 0] + rng.normal(0, 0.02, len(xy))])
     assert not ground_blunders(xyz, max_area=400.0, rise=1.0, sink=10.0).any()
+
+
+def test_a_rolling_window_keeps_the_cells_it_filled_when_it_moves():
+    """The window moves with the vehicle; the cells a gap was filled in, still inside it,
+    keep their values without being filled again (only the region of new data is)."""
+    roll = _rolling_60m("tin")
+    roll.update(_plane_points(0, 30, 0.5, hole=(15, 15, 4)), np.array([15.0, 15.0]), 1.0)
+    first = roll.snapshot()
+    gap = np.argwhere(first.interpolated == 1)
+    assert len(gap) > 20
+    at = first.origin + (gap[:, ::-1] + 0.5) * first.resolution  # x, y of the gap's cells
+    # 10 m on: the gap stays inside the window, the new data lie 25 m from it
+    g = np.arange(0.25, 10, 0.5)
+    far = np.stack(np.meshgrid(g + 40.0, g), axis=-1).reshape(-1, 2)
+    roll.update(np.column_stack([far, plane_at(far)]), np.array([25.0, 15.0]), 2.0)
+    second = roll.snapshot()
+    assert second.origin[0] == first.origin[0] + 10
+    rc = np.floor((at - second.origin) / second.resolution).astype(int)[:, ::-1]
+    values = second.elevation[rc[:, 0], rc[:, 1]]
+    assert np.isfinite(values).all() and np.allclose(values, plane_at(at), atol=1e-3)
+
+
+def test_data_added_twice_before_a_read_has_both_regions_filled():
+    """Two updates, one north and one south (or east and west; either first), then one
+    read: the empty cells beside both are filled (the region to fill is their union)."""
+    for axis in (1, 0):  # y: rows, x: columns
+        holes = [(15, 24), (15, 6)] if axis == 1 else [(24, 15), (6, 15)]
+        one = _plane_points(0, 30, 0.5, hole=(*holes[0], 3))
+        other = _plane_points(0, 30, 0.5, hole=(*holes[1], 3))
+        halves = [one[one[:, axis] > 15], other[other[:, axis] <= 15]]
+        for first, second in (halves, halves[::-1]):
+            roll = RollingDem(_cfg(**{"dem.extent": 0.0, "dem.resolution": 1.0,
+                                      "dem.interpolation": "tin", "dem.fill_distance": 4.0}))
+            roll.update(first, None, 1.0)
+            roll.update(second, None, 2.0)
+            grid = roll.snapshot()
+            for cx, cy in holes:
+                c = int((cx - grid.origin[0]) / grid.resolution)
+                r = int((cy - grid.origin[1]) / grid.resolution)
+                assert grid.interpolated[r, c] == 1 and np.isfinite(grid.elevation[r, c])

@@ -87,3 +87,12 @@ def test_check_points_find_their_cell_from_the_grids_own_origin():
     assert stats["check_rmse_m"] == pytest.approx(np.sqrt(0.5))
     # reference heights 1 and 7 (mean 4, SS_tot 18), SS_res 1
     assert stats["check_r2"] == pytest.approx(1 - 1 / 18)
+
+
+def test_the_newest_check_points_are_kept():
+    """`capacity` bounds them, and it is the oldest that go: over a long flight the
+    oldest have left the rolling window, where they would measure nothing."""
+    checks = CheckPoints(2)
+    for k in range(3):
+        checks.add(np.array([[k, 0.0, 0.0], [k, 1.0, 0.0]]))
+    assert checks.xyz.tolist() == [[2.0, 0.0, 0.0], [2.0, 1.0, 0.0]]

@@ -133,6 +133,7 @@ def test_grid_errors_nan():
     r = M.grid_errors(ref, est)  # compared: (1,2) and (2,2) -> errors 1, 0
     assert r["n"] == 2 and r["rmse_m"] == pytest.approx(np.sqrt(0.5))
     assert r["bias_m"] == pytest.approx(0.5)
+    assert r["mae_m"] == pytest.approx(0.5) and r["max_abs_m"] == pytest.approx(1.0)
     # SS_tot about mean 1.5 = 0.5, SS_res = 1 -> r2 = -1
     assert r["r2"] == pytest.approx(-1.0)
     assert M.grid_errors([np.nan], [1.0])["rmse_m"] is None

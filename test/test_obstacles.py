@@ -150,6 +150,12 @@ def test_clearance_grid_by_hand():
     assert cells[2, 2] == 0  # noise is seen but is no obstacle
     assert cells[1, 3] == 0  # ... however high above ground (a bird, a multipath echo)
     assert cells[4, 4] == -1  # nothing fell there
+    # rounded to the nearest percent of max_height: 12.7 m of 50 -> 25.4 -> 25, 12.8 -> 26
+    for height, value in ((12.7, 25), (12.8, 26)):
+        cells, _, _ = clearance_grid(np.array([[0.5, 0.5, height]]), np.array([5], np.uint8),
+                                     np.array([height], np.float32),
+                                     centre_xy=np.array([2.5, 2.5]), cfg=cfg)
+        assert cells[0, 0] == value, height
 
 
 def test_the_detectors_clearance_grid_is_centred_on_the_vehicle_else_on_the_cloud():
@@ -1414,3 +1420,22 @@ def test_a_thin_wires_lone_echoes_on_its_line_are_wire_not_noise():
     assert res.classes[-5:-2].tolist() == [14] * 3
     assert len(wire_id) == 1 and (res.object_id[-5:-2] == wire_id[0]).all()
     assert res.classes[-2:].tolist() == [7, 7]  # noise, off the line or out of reach
+
+
+def test_a_level_line_with_something_just_below_it_is_no_wire():
+    """A wire hangs with empty space below it; a gutter, a fence rail or a ridge over a
+    hedge up to WIRE_GAP beneath it is linear and level too, but no wire. (The hedge's
+    top is 2.2 m down, beyond `feature_radius`: the line's own shape is a wire's.)"""
+    rng = np.random.default_rng(3)
+    g = np.column_stack([rng.uniform(0, 40, (8000, 2)), rng.normal(0, 0.02, 8000)])
+    s = np.arange(5.0, 35.0, 0.1)
+    line = np.column_stack([s, np.full_like(s, 20.0), np.full_like(s, 10.0)])
+    hedge = np.column_stack([rng.uniform(5, 35, 3000), rng.uniform(19.5, 20.5, 3000),
+                             rng.uniform(0.0, 7.8, 3000)])
+    for below, wire in ((hedge, False), (hedge[hedge[:, 2] < 6.0], True)):
+        xyz = np.concatenate([g, line, below])
+        ground = np.arange(len(xyz)) < len(g)
+        hag = np.where(ground, 0.0, xyz[:, 2]).astype(np.float32)
+        res = classify_obstacles(xyz, ground, hag, cfg=CFG.obstacles)
+        share = (res.classes[len(g):len(g) + len(line)] == 14).mean()
+        assert (share > 0.9) if wire else (share == 0.0), (wire, share)
