@@ -181,3 +181,49 @@ def test_a_writer_killed_while_it_swaps_a_folder_loses_no_data(writer, kill_at, 
     assert (out / "mark").is_file() == (kill_at == "between")
     assert _olds(tmp_path) == others
     assert not [p for p in tmp_path.iterdir() if ".partial-" in p.name]
+
+
+def _dead_pid() -> int:
+    """The PID of a process that has ended."""
+    proc = subprocess.Popen([sys.executable, "-c", ""])
+    proc.wait()
+    return proc.pid
+
+
+def test_stale_old_copies_give_back_the_latest_and_never_the_only_one(tmp_path):
+    """Writers killed in turn while swapping left two old copies and no target: the one
+    swapped away last is the target again, the other goes. Beside a dangling link at the
+    target's name an old copy is the only copy of the data, and stays."""
+    import time
+
+    from lidar_obstacles.io.atomic import remove_stale_partials
+
+    out, dead = tmp_path / "out", _dead_pid()
+    for k, name in enumerate((f".out.old-{dead}", f".out.old-{dead}-abcdefgh")):
+        folder = tmp_path / f"staging{k}"
+        folder.mkdir()
+        (folder / "mark").write_text(name)
+        time.sleep(0.05)  # (the rename sets its change time: the second is the later)
+        folder.rename(tmp_path / name)
+    remove_stale_partials(out)
+    assert (out / "mark").read_text() == f".out.old-{dead}-abcdefgh"
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]
+    # a dangling link where the target was: the old copy is not removed
+    lonely = tmp_path / "lonely"
+    (tmp_path / f".lonely.old-{dead}").mkdir()
+    lonely.symlink_to(tmp_path / "nowhere")
+    remove_stale_partials(lonely)
+    assert (tmp_path / f".lonely.old-{dead}").is_dir()
+
+
+def test_a_partial_named_by_no_process_is_no_dead_writers(tmp_path):
+    """PID 0 is no process (a process group to os.kill): a partial named so may be a
+    live writer's, and stays; a dead writer's goes."""
+    from lidar_obstacles.io.atomic import remove_stale_partials
+
+    out = tmp_path / "out"
+    kept, gone = tmp_path / ".out.partial-0", tmp_path / f".out.partial-{_dead_pid()}"
+    kept.mkdir()
+    gone.mkdir()
+    remove_stale_partials(out)
+    assert kept.is_dir() and not gone.exists()

@@ -132,6 +132,12 @@ def test_lone_low_echoes_beyond_a_strips_edge_leave_the_ground():
     # Judged one cell at a time, the three close together shield each other.
     single, _ = morphological_ground(pts, HybridSettings(lone_cells=1))
     assert single[is_echo][1:].all() and not single[is_echo][0]
+    # A real ground point in an echo's cell (5 cm from it, on the terrain) stays ground:
+    # only the points near the cell's lowest leave with it.
+    beside = np.concatenate([pts, pts[-5:-4] + [0.05, 0.05, 0.0]])
+    beside[-1, 2] = pts[-1, 2] + 0.2 * (beside[-1, 1] - pts[-1, 1])  # as the land falls
+    ground, _ = morphological_ground(beside, HybridSettings())
+    assert not ground[-6] and ground[-1]
 
 
 def test_a_steep_gable_roof_in_a_strips_corner_and_its_walls_are_no_ground():
