@@ -1439,3 +1439,31 @@ def test_a_level_line_with_something_just_below_it_is_no_wire():
         res = classify_obstacles(xyz, ground, hag, cfg=CFG.obstacles)
         share = (res.classes[len(g):len(g) + len(line)] == 14).mean()
         assert (share > 0.9) if wire else (share == 0.0), (wire, share)
+
+
+def test_thickets_joined_only_through_a_towers_legs_are_objects_of_their_own():
+    """Two thickets either side of a tower, each reaching in to touch its legs, were one
+    object with it; once the tower is an object of its own, what is left is grouped anew
+    (`_regroup_leftovers`): two thickets, not one object spanning the tower."""
+    rng = np.random.default_rng(11)
+    xyz, truth = _three_spans(rng, high=16.0)
+
+    def thicket(x0: float, x1: float, reach0: float, reach1: float) -> np.ndarray:
+        body = np.column_stack([rng.uniform(x0, x1, 2000), rng.uniform(-3, 3, 2000),
+                                rng.uniform(0.5, 2.5, 2000)])
+        reach = np.column_stack([rng.uniform(reach0, reach1, 400), rng.uniform(-1, 1, 400),
+                                 rng.uniform(0.5, 2.0, 400)])
+        return np.concatenate([body, reach])
+
+    east, west = thicket(-50, -45, -54.6, -50), thicket(-75, -70, -70, -65.4)
+    xyz = np.concatenate([xyz, east, west])
+    truth = np.concatenate([truth, np.full(len(east) + len(west), 1)])
+    res = classify_obstacles(xyz, truth == 2, xyz[:, 2].astype(np.float32), cfg=CFG.obstacles)
+    n = len(truth) - len(east) - len(west)
+    bush = res.classes != 15  # (where a thicket touches a leg, its points may be the tower's)
+    side = np.zeros(len(truth), int)
+    side[n:n + len(east)], side[n + len(east):] = 1, 2
+    ids_east = set(res.object_id[(side == 1) & bush].tolist()) - {-1}
+    ids_west = set(res.object_id[(side == 2) & bush].tolist()) - {-1}
+    assert len(ids_east) == len(ids_west) == 1 and not ids_east & ids_west
+    assert (res.classes[n:] == 15).mean() < 0.05
