@@ -314,3 +314,24 @@ def test_a_late_odometry_pose_goes_in_its_place():
         == [10.0, 10.1, 10.15, 10.2]
     poses.add(at(3.0))
     assert poses.nearest(int(10.2e9), 0.01) is None and poses.nearest(int(3e9), 0.01) is not None
+
+
+def test_a_subscription_destroyed_while_the_wait_set_is_built_does_not_stop_the_node():
+    """`input.reliability: auto` swaps the input subscription from a timer on another of
+    a multi-threaded executor's threads; rclpy then raised InvalidHandle from the wait set
+    being built, in the spin loop, and dem_builder died (exit 1). The loop goes on."""
+    from rclpy._rclpy_pybind11 import InvalidHandle
+
+    from lidar_obstacles.ros.node_base import spin_until
+
+    class Executor:
+        spins = 0
+
+        def spin_once(self) -> None:
+            self.spins += 1
+            if self.spins == 2:
+                raise InvalidHandle("cannot use Destroyable because destruction was requested")
+
+    executor = Executor()
+    spin_until(executor, lambda: executor.spins >= 5)
+    assert executor.spins == 5

@@ -547,6 +547,22 @@ def _finish_callbacks(executor: Executor) -> None:
         pool.shutdown(wait=True)
 
 
+def spin_until(executor: Executor, stopped: Callable[[], bool]) -> None:
+    """Spin `executor` until `stopped()`. An entity destroyed while a wait set was being
+    built (rclpy's InvalidHandle) is passed over: `input.reliability: auto` re-creates the
+    input subscription from a timer, which a multi-threaded executor (`dem_builder`'s)
+    runs on another thread, and the wait set built meanwhile held the old subscription's
+    event handler (rclpy 7.1; a CI run lost its dem_builder so, exit 1). The next wait set
+    is built without it."""
+    from rclpy._rclpy_pybind11 import InvalidHandle
+
+    while not stopped():
+        try:
+            executor.spin_once()
+        except InvalidHandle:
+            continue
+
+
 def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
     """Jazzy-style main: init, spin, and on SIGINT/SIGTERM destroy the node and shut down.
 
@@ -588,8 +604,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> int:
         node = factory()
         executor.add_node(node)
         stop.watch(node)
-        while stop.received is None:
-            executor.spin_once()
+        spin_until(executor, lambda: stop.received is not None)
     except ConfigError as exc:
         print(f"{program}: error: {exc}", file=sys.stderr)
         return 2
