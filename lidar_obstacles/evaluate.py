@@ -306,7 +306,8 @@ def evaluate(src: str | Path, *, params_file: str | Path | None = None,
              skip_malformed: bool = False) -> dict:
     """All the figures of `lidar-obstacles evaluate` for one input (JSON-ready dict). A
     malformed cloud of a labelled bag stops it unless `skip_malformed` (`load_input`)."""
-    from lidar_obstacles.core.metrics import evaluate_classes, jsonable, latency_stats
+    from lidar_obstacles.core.metrics import (evaluate_classes, jsonable, latency_stats,
+                                              raised_objects_as_ground)
 
     if report_dir is not None:
         _check_report_folder(Path(report_dir))  # before the work, not after it
@@ -335,6 +336,9 @@ def evaluate(src: str | Path, *, params_file: str | Path | None = None,
     if with_dem:
         dem = dem_comparison(xyz, ref, pred, height_above_ground=hag, cfg=dem_cfg)
         metrics["dem"] = {"grid": dem["grid"], "check_points": dem.get("check_points")}
+        # every class's objects put in ground, by their height above the reference ground
+        metrics["safety"].update(raised_objects_as_ground(
+            ref, pred, xyz[:, 2] - dem["reference_dem"].sample(xyz[:, :2])))
     if latencies:
         metrics["latency"] = latency_stats(latencies)
     metrics = jsonable(metrics)

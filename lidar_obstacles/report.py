@@ -684,6 +684,9 @@ EXPLANATIONS: dict[str, str] = {
     "obstacle_as_ground": "wire and tower points predicted as ground",
     "n_wire": "reference wire points (13, 14)",
     "n_tower": "reference tower points (15, 16)",
+    "n_raised_object": "reference object points of any class more than 1 m above the "
+                       "reference ground",
+    "raised_object_as_ground": "those predicted as ground: a UAV would fly into them",
     "rmse_m": "root mean square height error, metres",
     "mae_m": "mean absolute height error, metres",
     "bias_m": "mean of (estimate − reference), metres",
@@ -704,6 +707,7 @@ _PERCENT_KEYS = {
     "overall_accuracy", "users_accuracy", "producers_accuracy", "type_i", "type_ii",
     "total_error", "share_kappa_gt_0_8", "share_kappa_gt_0_6", "wire_as_ground",
     "tower_as_ground", "obstacle_as_ground", "reduction", "coverage",
+    "raised_object_as_ground",
 }
 
 _CSS = """

@@ -79,6 +79,40 @@ def test_dem_errors_say_what_share_of_the_survey_they_cover(tmp_path, monkeypatc
     assert grid["n"] == pytest.approx(grid["coverage"] * 3600, abs=1)
 
 
+def test_safety_counts_every_raised_object_put_in_ground(tmp_path, monkeypatch):
+    """A shed 3 m high taken for ground is what a UAV must never be told, whatever its
+    class; low vegetation within a metre of the ground is not counted."""
+    import laspy
+
+    from lidar_obstacles import evaluate as ev
+
+    g = np.arange(0.25, 40, 0.5)
+    x, y = (a.ravel() for a in np.meshgrid(g, g))
+    shed = (np.abs(x - 20) < 3) & (np.abs(y - 20) < 3)
+    grass = (x > 30) & (y > 30)
+    las = laspy.LasData(laspy.LasHeader(point_format=1, version="1.2"))
+    las.x, las.y = x, y
+    las.z = 0.05 * x + np.where(shed, 3.0, np.where(grass, 0.3, 0.0))
+    las.classification = np.where(shed, 6, np.where(grass, 3, 2))
+    las.write(str(tmp_path / "shed.las"))
+
+    def predict(ground_share):
+        def run(inp, cfg, progress=False):
+            for cloud in inp.clouds:  # the shed's west part as ground, the grass ground
+                west = cloud.xyz[:, 0] < 17 + 6 * ground_share
+                cloud.predicted = np.where(
+                    (cloud.reference == 6) & ~west, 6, 2).astype(np.uint8)
+            return []
+        return run
+
+    for share in (0.0, 0.5, 1.0):
+        monkeypatch.setattr(ev, "run_detector", predict(share))
+        safety = ev.evaluate(tmp_path / "shed.las")["safety"]
+        assert safety["n_raised_object"] == int(shed.sum())
+        assert safety["raised_object_as_ground"] == pytest.approx(share, abs=0.1)
+        assert safety["obstacle_as_ground"] is None  # (no wire, no tower)
+
+
 def test_evaluate_replay_output_and_report(tmp_path):
     run_cli("simulate", tmp_path / "flight", "--duration", "2", "--seed", "2",
             "--scene", "corridor")

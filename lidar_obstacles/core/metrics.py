@@ -88,6 +88,10 @@ key                                          meaning
 ``safety.wire_as_ground``                    wire points predicted ground / wire points
 ``safety.tower_as_ground``                   tower points predicted ground / tower points
 ``safety.obstacle_as_ground``                both together
+``safety.n_raised_object``                   (with a reference DEM: ``raised_objects_as_ground``)
+                                             reference objects of any class more than 1 m
+                                             above the reference ground
+``safety.raised_object_as_ground``           those predicted ground / those
 ``by_code.<reference code>.<predicted code>`` points of that reference ASPRS code predicted
                                              as that code (nonzero pairs only; codes as
                                              strings): where a class the groups lump
@@ -309,6 +313,29 @@ def _conditional_kappas(matrix: np.ndarray) -> tuple[list[float | None], list[fl
     users = [_ratio(n, d) for n, d in zip(num, den_user)]
     producers = [_ratio(n, d) for n, d in zip(num, den_prod)]
     return users, producers
+
+
+RAISED_OBJECT_HEIGHT = 1.0  # m: an object this high a UAV flying low must never take for ground
+
+
+def raised_objects_as_ground(reference_classes: Any, predicted_classes: Any,
+                             height_above_reference: Any) -> dict:
+    """What a low-flying UAV must never be told is ground, over every class (the wires'
+    and towers' `safety` figures cover two): the reference objects (any group but ground)
+    standing more than RAISED_OBJECT_HEIGHT above the reference ground, and the share of
+    them predicted ground. height_above_reference: (N,) m, each point's height above the
+    DEM of the reference ground (NaN where it has none: not counted). Returns
+    {"n_raised_object": n, "raised_object_as_ground": share, None when n = 0}."""
+    ref = _as_codes(reference_classes, "reference_classes")
+    pred = _as_codes(predicted_classes, "predicted_classes")
+    height = np.asarray(height_above_reference, np.float64)
+    if not ref.shape == pred.shape == height.shape:
+        raise ConfigError(f"raised_objects_as_ground: {ref.shape}, {pred.shape} and "
+                          f"{height.shape} points")
+    raised = (_CODE_TO_GROUP[ref] != GROUP_GROUND) & (height > RAISED_OBJECT_HEIGHT)
+    n = int(raised.sum())
+    return {"n_raised_object": n, "raised_object_as_ground":
+            _ratio(int((raised & (_CODE_TO_GROUP[pred] == GROUP_GROUND)).sum()), n)}
 
 
 def ground_object_errors(reference_ground: np.ndarray, predicted_ground: np.ndarray) -> dict:
