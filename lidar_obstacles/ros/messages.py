@@ -8,7 +8,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from builtin_interfaces.msg import Duration, Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
+from geometry_msgs.msg import Point, Quaternion, Vector3
+from geometry_msgs.msg import Pose as PoseMsg  # (ros.stages.Pose is the odometry pose we hold)
 from nav_msgs.msg import MapMetaData, OccupancyGrid, Odometry
 from sensor_msgs.msg import Image, PointCloud2, PointField
 from std_msgs.msg import ColorRGBA, Header
@@ -52,14 +53,14 @@ def markers(objects: Iterable[ObstacleObject], hdr: Header,
         r, g, b = CLASS_COLOURS.get(int(obj.cls), (0.7, 0.7, 0.7))
         lo, hi = np.asarray(obj.min_xyz, float), np.asarray(obj.max_xyz, float)
         centre, size = (lo + hi) / 2.0, np.maximum(hi - lo, 0.1)
-        pose = Pose(position=Point(x=float(centre[0]), y=float(centre[1]), z=float(centre[2])),
-                    orientation=Quaternion(w=1.0))
+        pose = PoseMsg(position=Point(x=float(centre[0]), y=float(centre[1]),
+                                      z=float(centre[2])), orientation=Quaternion(w=1.0))
         out.append(Marker(header=hdr, ns=name, id=2 * int(obj.id), type=Marker.CUBE,
                           action=Marker.ADD, pose=pose, lifetime=life,
                           scale=Vector3(x=float(size[0]), y=float(size[1]), z=float(size[2])),
                           color=ColorRGBA(r=r, g=g, b=b, a=0.5)))
-        label = Pose(position=Point(x=float(centre[0]), y=float(centre[1]),
-                                    z=float(hi[2]) + 1.0), orientation=Quaternion(w=1.0))
+        label = PoseMsg(position=Point(x=float(centre[0]), y=float(centre[1]),
+                                       z=float(hi[2]) + 1.0), orientation=Quaternion(w=1.0))
         out.append(Marker(header=hdr, ns=name, id=2 * int(obj.id) + 1,
                           type=Marker.TEXT_VIEW_FACING, action=Marker.ADD, pose=label,
                           lifetime=life, scale=Vector3(z=1.5),
@@ -72,8 +73,8 @@ def markers(objects: Iterable[ObstacleObject], hdr: Header,
 def _map_meta(stamp: Time, rows: int, cols: int, origin, resolution: float) -> MapMetaData:
     return MapMetaData(map_load_time=stamp, resolution=float(resolution), width=int(cols),
                        height=int(rows),
-                       origin=Pose(position=Point(x=float(origin[0]), y=float(origin[1])),
-                                   orientation=Quaternion(w=1.0)))
+                       origin=PoseMsg(position=Point(x=float(origin[0]), y=float(origin[1])),
+                                      orientation=Quaternion(w=1.0)))
 
 
 def occupancy(cells: np.ndarray, origin: np.ndarray, resolution: float,
@@ -124,9 +125,9 @@ def odometry(stamp_ns: int, frame_id: str, child_frame_id: str, position, orient
     """nav_msgs/Odometry of a pose (position (3,), quaternion x y z w)."""
     msg = Odometry(header=header(stamp_ns, frame_id), child_frame_id=child_frame_id)
     p, q = position, orientation
-    msg.pose.pose = Pose(position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
-                         orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]),
-                                                w=float(q[3])))
+    msg.pose.pose = PoseMsg(position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                            orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]),
+                                                   w=float(q[3])))
     if velocity is not None:
         msg.twist.twist.linear = Vector3(x=float(velocity[0]), y=float(velocity[1]),
                                          z=float(velocity[2]))
