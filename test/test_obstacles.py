@@ -1467,3 +1467,18 @@ def test_thickets_joined_only_through_a_towers_legs_are_objects_of_their_own():
     ids_west = set(res.object_id[(side == 2) & bush].tolist()) - {-1}
     assert len(ids_east) == len(ids_west) == 1 and not ids_east & ids_west
     assert (res.classes[n:] == 15).mean() < 0.05
+
+
+def test_points_exactly_at_min_height_are_candidates_and_those_just_below_are_not():
+    # `obstacles.min_height` is the lowest height of a candidate: a block of points
+    # standing on it, to the bit, forms an object; the same block a float32 step lower
+    # joins none and stays low vegetation by height
+    g = np.arange(0.0, 2.01, 0.25)
+    xyz = np.stack(np.meshgrid(g, g, g), axis=-1).reshape(-1, 3)
+    lowest = np.float32(CFG.obstacles.min_height)
+    for base, is_object in ((lowest, True), (np.nextafter(lowest, np.float32(0)), False)):
+        hag = np.full(len(xyz), base, np.float32)  # every point at the one height
+        res = classify_obstacles(xyz, np.zeros(len(xyz), bool), hag, cfg=CFG.obstacles)
+        assert (res.object_id >= 0).all() == is_object and len(res.objects) == is_object
+        if not is_object:
+            assert (res.object_id == -1).all() and (res.classes == 3).all()
