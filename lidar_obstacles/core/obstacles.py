@@ -76,23 +76,20 @@ WIRE_MIN_RUN = 10.0  # m: wire candidates joined into shorter runs are not wires
 # that lies on the line of a wire found within WIRE_ECHO_REACH m, within WIRE_ECHO_TUBE +
 # WIRE_ECHO_SAG x the distance along it, is that wire, not noise or vegetation (the two
 # corridor tiles: all 20 isolated points more than 3 m up were such echoes, 3-8.6 m from
-# the found wire; 66 points back, none of another class in the reference; wire recall
-# 0.9881 -> 0.9890 and 0.9814 -> 0.9868).
+# the found wire).
 WIRE_ECHO_REACH = 10.0
 WIRE_ECHO_TUBE = 0.5  # m
 WIRE_ECHO_SAG = 0.05  # m per m along the line
 # A new wire (a run that continues no known wire) seen in fewer than SEED_VOXELS voxels of
 # WIRE_MEMORY_VOXEL must run one way: the axes of its points agree in azimuth (the mean
 # resultant of their doubled angles, 1 for parallel lines, ~0 for random ones) to at least
-# SEED_AGREEMENT (see _wires).
+# SEED_AGREEMENT (see _seeds_run_one_way).
 SEED_VOXELS = 20
 # A known wire leads on (is followed, and continues this message's runs) only where the
 # memory holds SEED_VOXELS voxels of wire that passed the wire test itself (not followed
 # through a crown) within this reach (m): otherwise a few crown points taken for a wire
 # once were followed through the crowns message after message, and what was followed was
-# remembered and followed in turn (simulated `mixed` flight, seed 4, a forest 12 min in:
-# 2 crown points -> 1 537 "wire" points a message, 9 456 remembered, 85 MB of neighbour
-# pairs a message).
+# remembered and followed in turn.
 KNOWN_WIRE_SUPPORT = 40.0
 SEED_AGREEMENT = 0.95
 WIRE_MEMORY_VOXEL = 0.5  # m: the wires a message passes on are thinned to one point per voxel
@@ -267,10 +264,8 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
     centroids of the fine voxels (edge radius / 8) within `radius` m (at most
     `max_neighbours`, the nearest) of the centroid of the point's coarse voxel (3 x 3 x 3
     fine voxels, 0.75 m at the default radius). Points of one coarse voxel share its
-    shape; the neighbour search is most of the detector's time. Coarse voxels of 0.5 m
-    cost 1.4 x (simulated forest strips 179 vs 125 ms of CPU per 50 000 points) for the
-    same figures on the AHN tiles (wire, tower, building recall within 0.01); 1 m voxels
-    lost AHN4 building recall (0.936 -> 0.889).
+    shape; the neighbour search is most of the detector's time (0.5 m coarse voxels cost
+    1.4 x as much for the same figures; 1 m ones lost roofs).
 
     A radius, not k nearest points: with k = 10 a roof scanned in lines 0.5 m apart looks
     linear (its ten nearest points lie on one scan line) and was taken for wires; within
@@ -282,13 +277,10 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
     A coarse voxel with SOLID_NEIGHBOURS or more of its 26 neighbours occupied lies inside
     a solid (a crown): a plane or a line through 3 x 3 x 3 voxels crosses at most ~21 of
     them. It is not searched and gets the shape of a filled block (linearity and planarity
-    0, roughness the spread of a uniform 3-voxel block). Of the neighbourhoods that pass
-    the wire test (linear, near-horizontal) or the roof test (planar, smooth), none is
-    solid on the AHN tiles (07CZ2_14, 12AN2_20, AHN4: 21 756 / 9 931 / 554 wire-like,
-    6 679 / 2 426 / 43 050 smooth points) or on the simulated flights, and no point of
-    them changes class; with 20 neighbours 641 AHN4 roof points became vegetation, with 18
-    746 (and 9 on 07CZ2_14). A forest strip's coarse voxels are 36 % solid, and its search
-    40 % shorter (59 -> 35 ms of CPU).
+    0, roughness the spread of a uniform 3-voxel block). None of the neighbourhoods that
+    pass the wire test (linear, near-horizontal) or the roof test (planar, smooth) is
+    solid on the AHN tiles or the simulated flights; a forest strip's coarse voxels are
+    36 % solid, and its search 40 % shorter.
 
     context: (C, 3) m, points of earlier messages (`shape_context`): neighbours only, their
     own shape is not sought. The voxels stay aligned to xyz's, so where the context does
@@ -430,9 +422,9 @@ def _isolated(pts: np.ndarray, radius: float, min_neighbours: int) -> np.ndarray
     """(M,) bool: points of (M, 3) pts (m) with fewer than `min_neighbours` others within
     `radius` m. Points of a voxel of edge radius / sqrt(3) are all within radius of each
     other, so a voxel holding more than `min_neighbours` points settles its points without
-    a search; only the rest are queried (4.8 -> ~1 ms per 50 000-point message). The k
-    nearest within the radius, not a ball count: a 3 m ball in a crown holds hundreds of
-    points and counting them all cost ~7 x more."""
+    a search; only the rest are queried (~1 ms per 50 000-point message, against 4.8 ms
+    querying them all). The k nearest within the radius, not a ball count: a 3 m ball in a
+    crown holds hundreds of points and counting them all cost ~7 x more."""
     isolated = np.zeros(len(pts), bool)
     if min_neighbours <= 0 or len(pts) == 0:
         return isolated
@@ -607,7 +599,7 @@ def _seeds_run_one_way(runs: np.ndarray, pts: np.ndarray, axis: np.ndarray) -> n
     anywhere (agreement 0.19-0.90 on the simulated forests), while the smallest new wires
     of the AHN corridor tiles, whole and streamed (8-14 voxels, two or three conductors
     side by side), agree to 0.97 and more. Once taken, such a crown "wire" was remembered
-    and continued message after message (50-392 points a 10 s flight)."""
+    and continued message after message."""
     m = len(axis)
     n_labels = int(runs.max()) + 1
     known = np.zeros(n_labels, bool)
@@ -669,7 +661,7 @@ def _known_wire_seeds(known: np.ndarray, pts: np.ndarray, found: np.ndarray,
     the following, but the wire found in the strips before leads in (the corridor tile
     07CZ2_14 streamed: 627 of 16 312 wire points were vegetation). Voxels, not the
     known points: a UAV that scans a wire again and again remembers each piece many
-    times over (the simulated corridor: ~100 copies, 24 -> 130-350 ms a message)."""
+    times over (the simulated corridor: ~100 copies)."""
     none = np.zeros((0, 3))
     if len(known) == 0 or len(pts) == 0:
         return none, none
@@ -879,17 +871,10 @@ def _curved_roof(pts: np.ndarray, hag: np.ndarray, on_plane: np.ndarray,
       a wall): a heap of earth or gravel, or terrain the ground filter left out, rises
       from the ground on gentle flanks.
 
-    Measured on synthetic scenes scanned 0.3-0.5 m apart with 2.5-3 cm of noise (20
-    vaults, domes and shallow arcs, 10 draws each, and crowns seen from above, their tops
-    ellipsoids with bumps of 0-0.3 m, 10-50 % of the pulses echoing inside): the roofs
-    hold 0.94-1.00 of their points on the quadric and its plane (0.53-0.96 with dense
-    gable walls joined), are 0.62-0.92 solid (a vault cut by skylight ribbons, scanned
-    0.5 m apart, 0.44-0.52: found in 2 of 10 draws) and at most 1.5 % rough; the
-    crowns' smooth patches are 0-0.55 solid and 0.6-24 % rough, and of 180 draws of
-    crowns one more was building than before: a crown a tenth of the pulses enter, its
-    top a perfect ellipsoid, as smooth as a dome. AHN4's two large roofs (planar, but
-    as cluttered as real roofs are) are 0.38 and 0.53 solid, 1.3 and 2.9 % rough. The
-    mound and the cone of test_obstacles.py fail only the last test. On sparse scans
+    On synthetic vaults, domes and arcs scanned 0.3-0.5 m apart the roofs hold 0.94-1.00
+    of their points on the quadric and its plane, are 0.62-0.92 solid and at most 1.5 %
+    rough; the smooth patches of synthetic crowns are 0-0.55 solid and 0.6-24 % rough.
+    The mound and the cone of test_obstacles.py fail only the last test. On sparse scans
     (about a point per m², the ISPRS samples) most 1 m cells are empty and no patch is
     solid: no curved roof is found there."""
     dist, normal = quadric_fit(pts, threshold)
@@ -1117,12 +1102,13 @@ def _wires_sag_away(top_xy: np.ndarray, top_z: float, touching: np.ndarray,
                     own: Callable[..., np.ndarray] | None = None) -> bool:
     """True when the wires sag away from an object on every side: they hang from it.
 
-    top_xy (2,) is the object's top, top_z (m) its height, touching (T, 3) the wire points
-    next to it. A catenary
-    is highest at its supports, so away from a tower its wires are lower (a 300 m span with
-    8 m of sag drops ~4 m in 40 m); at a tree under the line the wires run level or rise
-    towards the next tower on at least one side (wire on one side only cannot tell them
-    apart: then the attachment decides). The top wire decides (95th percentiles):
+    top_xy (2,) m is the object's top on the map, top_z (m) the z of its column's highest
+    point, touching (T, 3) m the wire points next to it; wire_xyz (W, 3) m the wires, and
+    wire_xy_tree a tree of their x, y. A catenary is highest at its supports, so away from
+    a tower its wires are lower (a 300 m span with 8 m of sag drops ~4 m in 40 m); at a
+    tree under the line the wires run level or rise towards the next tower on at least one
+    side (wire on one side only cannot tell them apart: then the attachment decides). The
+    top wire decides (95th percentiles):
     a tower carries the highest wire, a tree touches lower ones at most. When the cloud
     holds no wire beyond SAG_NEAR (a narrow strip of a live scan) the attachment alone
     decides; when it holds wire only further than SAG_FAR, the touching pieces are no span.
@@ -1246,11 +1232,10 @@ def _lattice(p: np.ndarray, upper: np.ndarray, column: np.ndarray) -> bool:
     (M, 3) m, is a lattice, not a solid mass: at most TOWER_MAX_SOLID of its points lie in
     voxels of LATTICE_VOXEL with SOLID_NEIGHBOURS or more of their 26 neighbours occupied
     by the object. A tower's members stand apart, while a crown is a volume of foliage.
-    In a forest a few branch points pass the wire test, a crown they touch was taken for a
-    tower, remembered, and found again message after message (simulated forest flights of
-    10 s, seeds 0-2: 151 000, 30 000 and 188 000 high-vegetation points labelled tower):
-    its upper column is 10-65 % solid, against none of the towers of the AHN corridor
-    tiles, whole or streamed, and of the simulated corridor flights."""
+    In a forest a few branch points pass the wire test, and a crown they touch was taken
+    for a tower, remembered, and found again message after message: its upper column is
+    10-65 % solid, against none of the towers of the AHN corridor tiles, whole or
+    streamed, and of the simulated corridor flights."""
     up = upper & column
     if not up.any():
         return True
@@ -1356,10 +1341,7 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
         # A tower carries wires: they end at its arms, at or below its top (a tree under
         # the line stays below the wires next to it). Trees touching the tower join its
         # component, so only the column around its axis is tower: the middle of its upper
-        # half, arms and all (a flight beside a tower below its top sees the far face of
-        # its lower part: on the simulated corridor's second tower the mean of the points
-        # above 0.7 of the height lay 2.3 m off the axis, that middle 0.1 m; median of 26
-        # messages).
+        # half, arms and all (`_middle`: a flight beside a tower sees its near face densely).
         top = _middle(p[h > 0.5 * top_h, :2])
         stub = lab in stubs
         seen = _known_columns(top[None], known)[0] if len(known) and not stub else -1
@@ -1451,22 +1433,23 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
     if n == 0:
         return ObstacleClasses(classes, object_id, ())
     hag = np.nan_to_num(np.asarray(height_above_ground, np.float64), nan=0.0)
-    nong = np.flatnonzero(~ground)
-    classes[nong] = vegetation_class(hag[nong])
+    off_ground = np.flatnonzero(~ground)
+    classes[off_ground] = vegetation_class(hag[off_ground])
     # 1. noise
-    nong, lone_high = _mark_noise(xyz, hag, nong, cfg, classes)
-    cand = nong[hag[nong] >= cfg.min_height]  # the obstacle candidates, whose shape is sought
+    off_ground, lone_high = _mark_noise(xyz, hag, off_ground, cfg, classes)
+    cand = off_ground[hag[off_ground] >= cfg.min_height]  # the candidates: shapes sought
     known_wires = _supported_wires(known_wires)
     known_buildings = (np.zeros((0, 4)) if known_buildings is None
                        else np.asarray(known_buildings, float).reshape(-1, 4))
     if len(cand) < 3:
         return ObstacleClasses(classes, object_id, (), candidates=xyz[cand])
+    # the candidates' neighbourhood shapes: linearity, planarity, main axis, roughness
     shape = local_shape(xyz[cand], cfg.feature_radius, context=context)
     # 2. wires; a strip across a roof an earlier message found is level and linear too
     is_wire = _wires(xyz, cand, hag, shape, cfg, known_wires)
     if is_wire.any() and (known_buildings[:, 3] > 0).any():
         is_wire[is_wire] = ~_on_known_roofs(xyz[cand[is_wire]], known_buildings)
-    tested = is_wire.copy()  # (before the following through crowns)
+    tested = is_wire.copy()  # passed the wire test itself (not followed through a crown)
     classes[cand[is_wire]] = WIRE
     # 3. objects of the rest; towers among the tall ones, by the wires of this message
     # and of earlier ones (a strip may catch a tower but not the wires it carries)
@@ -1479,7 +1462,7 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
     is_building, roofs = _buildings(xyz, cand, shape, ~is_wire & ~tower, cfg, rng,
                                     known_buildings, hag[cand])
     classes[cand[is_building]] = BUILDING
-    _wall_feet(xyz, nong[hag[nong] < cfg.min_height],
+    _wall_feet(xyz, off_ground[hag[off_ground] < cfg.min_height],
                cand[roofs & (hag[cand] < cfg.min_height + WALL_FOOT_BAND)], classes)
     # 5. poles and structures; wires go on through crowns and clutter (not into towers or
     # roofs); the ground under a tower's legs
@@ -1509,20 +1492,21 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
                            xyz[cand])
 
 
-def _mark_noise(xyz: np.ndarray, hag: np.ndarray, nong: np.ndarray, cfg: ObstaclesConfig,
-                classes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Class NOISE for the non-ground points `nong` (indices into xyz (N, 3) m; hag (N,) m
-    above ground) with fewer than cfg.noise_min_neighbours others within cfg.noise_radius
-    m (`_isolated`) or more than BELOW_GROUND_NOISE m below the ground; classes (N,) is
-    updated in place. Returns the indices of the other points of `nong`, and those of the
-    isolated ones more than cfg.wire_min_clearance m up, which may yet be a thin wire's
-    lone echoes (`_wire_echoes`)."""
-    if len(nong) == 0:
-        return nong, nong
-    isolated = _isolated(xyz[nong], cfg.noise_radius, cfg.noise_min_neighbours)
-    noise = isolated | (hag[nong] < -BELOW_GROUND_NOISE)
-    classes[nong[noise]] = NOISE
-    return nong[~noise], nong[isolated & (hag[nong] > cfg.wire_min_clearance)]
+def _mark_noise(xyz: np.ndarray, hag: np.ndarray, off_ground: np.ndarray,
+                cfg: ObstaclesConfig, classes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Class NOISE for the non-ground points `off_ground` (indices into xyz (N, 3) m; hag
+    (N,) m above ground) with fewer than cfg.noise_min_neighbours others within
+    cfg.noise_radius m (`_isolated`) or more than BELOW_GROUND_NOISE m below the ground;
+    classes (N,) is updated in place. Returns the indices of the other points of
+    `off_ground`, and those of the isolated ones more than cfg.wire_min_clearance m up,
+    which may yet be a thin wire's lone echoes (`_wire_echoes`)."""
+    if len(off_ground) == 0:
+        return off_ground, off_ground
+    isolated = _isolated(xyz[off_ground], cfg.noise_radius, cfg.noise_min_neighbours)
+    noise = isolated | (hag[off_ground] < -BELOW_GROUND_NOISE)
+    classes[off_ground[noise]] = NOISE
+    lone_high = off_ground[isolated & (hag[off_ground] > cfg.wire_min_clearance)]
+    return off_ground[~noise], lone_high
 
 
 @dataclass(frozen=True)
@@ -1721,13 +1705,12 @@ def _structures(labels: np.ndarray, shape: LocalShape, rest: np.ndarray,
     (linearity over STRUCTURE_LINEARITY, main axis over STRUCTURE_STEEP from horizontal:
     jibs, masts, lattice members) and smooth (mean roughness under STRUCTURE_ROUGHNESS).
 
-    A crane stood among the trees as "high vegetation": 88 % of the corridor files'
-    cranes (class 26). Their objects hold 11-29 % of points on steep lines, roughness
-    0.14-0.24 m, and are 8.9-27.6 m wide; the files' trees (class 5), AHN4's (class 1)
-    1-7 %, 0.28-0.42 m (with 7 % one tree of 12AN2_20 went). Young trees of the simulated
-    flights, a trunk under a small crown, pass the beams and the roughness (13-37 %,
-    0.08-0.23 m) but are 3.4-5.5 m wide; pieces of towers not found as such (4-17 m wide)
-    go from vegetation to unclassified."""
+    Cranes otherwise stand among the trees as high vegetation. The corridor files'
+    cranes' objects hold 11-29 % of points on steep lines, roughness 0.14-0.24 m, and are
+    8.9-27.6 m wide; their trees and AHN4's 1-7 %, 0.28-0.42 m. Young trees of the
+    simulated flights, a trunk under a small crown, pass the beams and the roughness but
+    are 3.4-5.5 m wide. Pieces of towers not found as such (4-17 m wide) are structures
+    too."""
     n = np.bincount(labels, minlength=len(height))
     steep = np.abs(shape.axis[rest, 2]) > np.sin(np.radians(STRUCTURE_STEEP))
     beams = (shape.linearity[rest] > STRUCTURE_LINEARITY) & steep
@@ -1743,16 +1726,12 @@ def _wall_feet(xyz: np.ndarray, low: np.ndarray, walls: np.ndarray,
     """Class BUILDING for the points `low` (indices of non-ground points below
     `obstacles.min_height`) that stand under a wall: within WALL_FOOT_REACH on the map of
     the points `walls` (indices: the lowest band of the buildings' own planar or curved
-    patches, not what clings to them). Those feet were low vegetation: in the demo's 20 s
-    flight 2 866 building points in 47 messages, 0.2-0.5 m up, the commonest wrong class
-    after the ground's band; building recall of the simulated flights +0.5 to +1.5
-    points. A band of WALL_FOOT_BAND 3 m above `min_height`, not 1 m: a wall's patch often
-    starts a metre or two up (its lowest part, rough near the ground, clings to it), and
-    the demo's first 120 messages kept 810 feet as vegetation, 250 with 3 m (AHN4 level:
-    recall 0.9360 -> 0.9367, precision 0.8949 -> 0.8948). Not the band of everything
-    labelled building: on AHN4 that is mostly the reference's class 1 (fences, sheds
-    beside the walls), and its precision fell 0.004; with the patches alone AHN4 is level
-    (recall +0.0004, precision -0.0005). classes (N,) is updated in place."""
+    patches, not what clings to them). Without this those feet are low vegetation, the
+    commonest wrong class after the ground's band. The band reaches WALL_FOOT_BAND 3 m
+    above `min_height`: a wall's patch often starts a metre or two up (its lowest part,
+    rough near the ground, clings to it). Not the band of everything labelled building:
+    on AHN4 that is mostly fences and sheds beside the walls. classes (N,) is updated in
+    place."""
     if len(low) == 0 or len(walls) == 0:
         return
     near = np.flatnonzero(all_columns((xyz[low, :2] >= column_min(xyz[walls, :2]) - 1.0)
