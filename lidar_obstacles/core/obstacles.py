@@ -66,6 +66,7 @@ SOLID_NEIGHBOURS = 22  # of a coarse voxel's 26 neighbours occupied: inside a so
 # leaves a gap (07CZ2_14, 12AN2_20: 2-point pieces 8-9 m up, 2-3 m from the rest); towers
 # stand 100 m and more apart.
 TOWER_LINK = 5.0
+OBJECT_LINK = 2.0  # m: voxel edge joining a building's or a wire's points into objects
 DENSE_GRID_CELLS = 8_000_000  # voxel box up to which voxel work runs on a dense grid
 BELOW_GROUND_NOISE = 1.5  # m: points this far below the ground surface are noise
 WIRE_GAP = 2.5  # m: a wire point has no other point from this far below it up to 0.5 m
@@ -75,23 +76,20 @@ WIRE_MIN_RUN = 10.0  # m: wire candidates joined into shorter runs are not wires
 # that lies on the line of a wire found within WIRE_ECHO_REACH m, within WIRE_ECHO_TUBE +
 # WIRE_ECHO_SAG x the distance along it, is that wire, not noise or vegetation (the two
 # corridor tiles: all 20 isolated points more than 3 m up were such echoes, 3-8.6 m from
-# the found wire; 66 points back, none of another class in the reference; wire recall
-# 0.9881 -> 0.9890 and 0.9814 -> 0.9868).
+# the found wire).
 WIRE_ECHO_REACH = 10.0
 WIRE_ECHO_TUBE = 0.5  # m
 WIRE_ECHO_SAG = 0.05  # m per m along the line
 # A new wire (a run that continues no known wire) seen in fewer than SEED_VOXELS voxels of
 # WIRE_MEMORY_VOXEL must run one way: the axes of its points agree in azimuth (the mean
 # resultant of their doubled angles, 1 for parallel lines, ~0 for random ones) to at least
-# SEED_AGREEMENT (see _wires).
+# SEED_AGREEMENT (see _seeds_run_one_way).
 SEED_VOXELS = 20
 # A known wire leads on (is followed, and continues this message's runs) only where the
 # memory holds SEED_VOXELS voxels of wire that passed the wire test itself (not followed
 # through a crown) within this reach (m): otherwise a few crown points taken for a wire
 # once were followed through the crowns message after message, and what was followed was
-# remembered and followed in turn (simulated `mixed` flight, seed 4, a forest 12 min in:
-# 2 crown points -> 1 537 "wire" points a message, 9 456 remembered, 85 MB of neighbour
-# pairs a message).
+# remembered and followed in turn.
 KNOWN_WIRE_SUPPORT = 40.0
 SEED_AGREEMENT = 0.95
 WIRE_MEMORY_VOXEL = 0.5  # m: the wires a message passes on are thinned to one point per voxel
@@ -152,6 +150,10 @@ STRUCTURE_BEAMS = 0.1  # share of the object's points on steep lines
 STRUCTURE_LINEARITY = 0.7
 STRUCTURE_STEEP = 20.0  # degrees from horizontal, at least
 STRUCTURE_ROUGHNESS = 0.25  # m, mean
+# Poles, unclassified: objects whose box's horizontal diagonal is under POLE_MAX_EXTENT
+# and whose top stands more than POLE_MIN_HEIGHT above ground
+POLE_MAX_EXTENT = 2.0  # m
+POLE_MIN_HEIGHT = 3.0  # m
 QUADRIC_SAMPLE = 4096  # points at most on which a curved patch's quadric is fitted
 THIN_SHARE = 1 / 3  # of a footprint within feature_radius of its edge: a thin strip (shape_context)
 
@@ -262,10 +264,8 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
     centroids of the fine voxels (edge radius / 8) within `radius` m (at most
     `max_neighbours`, the nearest) of the centroid of the point's coarse voxel (3 x 3 x 3
     fine voxels, 0.75 m at the default radius). Points of one coarse voxel share its
-    shape; the neighbour search is most of the detector's time. Coarse voxels of 0.5 m
-    cost 1.4 x (simulated forest strips 179 vs 125 ms of CPU per 50 000 points) for the
-    same figures on the AHN tiles (wire, tower, building recall within 0.01); 1 m voxels
-    lost AHN4 building recall (0.936 -> 0.889).
+    shape; the neighbour search is most of the detector's time (0.5 m coarse voxels cost
+    1.4 x as much for the same figures; 1 m ones lost roofs).
 
     A radius, not k nearest points: with k = 10 a roof scanned in lines 0.5 m apart looks
     linear (its ten nearest points lie on one scan line) and was taken for wires; within
@@ -277,13 +277,10 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
     A coarse voxel with SOLID_NEIGHBOURS or more of its 26 neighbours occupied lies inside
     a solid (a crown): a plane or a line through 3 x 3 x 3 voxels crosses at most ~21 of
     them. It is not searched and gets the shape of a filled block (linearity and planarity
-    0, roughness the spread of a uniform 3-voxel block). Of the neighbourhoods that pass
-    the wire test (linear, near-horizontal) or the roof test (planar, smooth), none is
-    solid on the AHN tiles (07CZ2_14, 12AN2_20, AHN4: 21 756 / 9 931 / 554 wire-like,
-    6 679 / 2 426 / 43 050 smooth points) or on the simulated flights, and no point of
-    them changes class; with 20 neighbours 641 AHN4 roof points became vegetation, with 18
-    746 (and 9 on 07CZ2_14). A forest strip's coarse voxels are 36 % solid, and its search
-    40 % shorter (59 -> 35 ms of CPU).
+    0, roughness the spread of a uniform 3-voxel block). None of the neighbourhoods that
+    pass the wire test (linear, near-horizontal) or the roof test (planar, smooth) is
+    solid on the AHN tiles or the simulated flights; a forest strip's coarse voxels are
+    36 % solid, and its search 40 % shorter.
 
     context: (C, 3) m, points of earlier messages (`shape_context`): neighbours only, their
     own shape is not sought. The voxels stay aligned to xyz's, so where the context does
@@ -302,7 +299,7 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
         return LocalShape(np.zeros(m), np.zeros(m), np.tile([0.0, 0.0, 1.0], (m, 1)),
                           np.zeros(m))
     at, coarse, ijk = _voxel_grid(xyz_all, lo, coarse_edge)
-    v, q = len(centre), len(at)  # fine centroids, coarse query points
+    q = len(at)  # coarse voxels (query points)
     # per coarse voxel: a solid block's shape, replaced below where searched
     linearity, planarity = np.zeros(q), np.zeros(q)
     axis = np.tile([0.0, 0.0, 1.0], (q, 1))
@@ -313,25 +310,7 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
         mine[coarse[:m]] = True
         asked &= mine
     ask = np.flatnonzero(asked)
-    k = min(max_neighbours, v)
-    dist, nn = tree_query(search_tree(centre), at[ask], k=k, distance_upper_bound=radius,
-                          workers=_workers(len(ask), k))
-    inside = np.isfinite(dist)
-    count = inside.sum(axis=1).astype(np.float64)
-    # Neighbourhood sums of 1, x, y, z and the six products in one sparse product
-    # (adjacency @ moments): ~5 x faster than gathering (q, k, 3) neighbour arrays.
-    # Built as CSR directly (each row's neighbours are distinct): converting from
-    # coordinates sorted and summed them, ~3 ms per 50 000-point message.
-    indptr = np.concatenate([[0], np.cumsum(count.astype(np.int64))])
-    adjacency = csr_matrix((np.ones(int(indptr[-1])), nn[inside], indptr),
-                           shape=(len(ask), v))
-    c = centre - column_mean(centre)  # small numbers: the products keep their precision
-    pairs = [(a, b) for a in range(3) for b in range(a, 3)]
-    sums = adjacency @ np.column_stack([c] + [c[:, a] * c[:, b] for a, b in pairs])
-    mean = sums[:, :3] / count[:, None]
-    cov = np.empty((len(ask), 3, 3))
-    for j, (a, b) in enumerate(pairs):
-        cov[:, a, b] = cov[:, b, a] = sums[:, 3 + j] / count - mean[:, a] * mean[:, b]
+    cov = _neighbourhood_covariance(centre, at[ask], radius, max_neighbours)
     w = symmetric_eigenvalues3(cov)
     axis[ask] = eigenvector3(cov, w[:, 0])
     w = np.maximum(w, 0.0)
@@ -340,6 +319,34 @@ def local_shape(xyz: np.ndarray, radius: float, max_neighbours: int = MAX_NEIGHB
     roughness[ask] = np.sqrt(w[:, 2])
     coarse = coarse[:m]
     return LocalShape(linearity[coarse], planarity[coarse], axis[coarse], roughness[coarse])
+
+
+def _neighbourhood_covariance(centre: np.ndarray, query: np.ndarray, radius: float,
+                              max_neighbours: int) -> np.ndarray:
+    """(Q, 3, 3) m^2: the covariance of the neighbourhood of each of the (Q, 3) query
+    points (m): the points `centre` (V >= 3, 3) m within `radius` m of it, at most the
+    `max_neighbours` nearest."""
+    v = len(centre)
+    k = min(max_neighbours, v)
+    dist, nn = tree_query(search_tree(centre), query, k=k, distance_upper_bound=radius,
+                          workers=_workers(len(query), k))
+    inside = np.isfinite(dist)
+    count = inside.sum(axis=1).astype(np.float64)
+    # Neighbourhood sums of 1, x, y, z and the six products in one sparse product
+    # (adjacency @ moments): ~5 x faster than gathering (q, k, 3) neighbour arrays.
+    # Built as CSR directly (each row's neighbours are distinct): converting from
+    # coordinates sorted and summed them, ~3 ms per 50 000-point message.
+    indptr = np.concatenate([[0], np.cumsum(count.astype(np.int64))])
+    adjacency = csr_matrix((np.ones(int(indptr[-1])), nn[inside], indptr),
+                           shape=(len(query), v))
+    c = centre - column_mean(centre)  # small numbers: the products keep their precision
+    pairs = [(a, b) for a in range(3) for b in range(a, 3)]
+    sums = adjacency @ np.column_stack([c] + [c[:, a] * c[:, b] for a, b in pairs])
+    mean = sums[:, :3] / count[:, None]
+    cov = np.empty((len(query), 3, 3))
+    for j, (a, b) in enumerate(pairs):
+        cov[:, a, b] = cov[:, b, a] = sums[:, 3 + j] / count - mean[:, a] * mean[:, b]
+    return cov
 
 
 def shape_context(recent: list[np.ndarray], cloud_xy: np.ndarray, radius: float
@@ -415,9 +422,9 @@ def _isolated(pts: np.ndarray, radius: float, min_neighbours: int) -> np.ndarray
     """(M,) bool: points of (M, 3) pts (m) with fewer than `min_neighbours` others within
     `radius` m. Points of a voxel of edge radius / sqrt(3) are all within radius of each
     other, so a voxel holding more than `min_neighbours` points settles its points without
-    a search; only the rest are queried (4.8 -> ~1 ms per 50 000-point message). The k
-    nearest within the radius, not a ball count: a 3 m ball in a crown holds hundreds of
-    points and counting them all cost ~7 x more."""
+    a search; only the rest are queried (~1 ms per 50 000-point message, against 4.8 ms
+    querying them all). The k nearest within the radius, not a ball count: a 3 m ball in a
+    crown holds hundreds of points and counting them all cost ~7 x more."""
     isolated = np.zeros(len(pts), bool)
     if min_neighbours <= 0 or len(pts) == 0:
         return isolated
@@ -592,7 +599,7 @@ def _seeds_run_one_way(runs: np.ndarray, pts: np.ndarray, axis: np.ndarray) -> n
     anywhere (agreement 0.19-0.90 on the simulated forests), while the smallest new wires
     of the AHN corridor tiles, whole and streamed (8-14 voxels, two or three conductors
     side by side), agree to 0.97 and more. Once taken, such a crown "wire" was remembered
-    and continued message after message (50-392 points a 10 s flight)."""
+    and continued message after message."""
     m = len(axis)
     n_labels = int(runs.max()) + 1
     known = np.zeros(n_labels, bool)
@@ -654,7 +661,7 @@ def _known_wire_seeds(known: np.ndarray, pts: np.ndarray, found: np.ndarray,
     the following, but the wire found in the strips before leads in (the corridor tile
     07CZ2_14 streamed: 627 of 16 312 wire points were vegetation). Voxels, not the
     known points: a UAV that scans a wire again and again remembers each piece many
-    times over (the simulated corridor: ~100 copies, 24 -> 130-350 ms a message)."""
+    times over (the simulated corridor: ~100 copies)."""
     none = np.zeros((0, 3))
     if len(known) == 0 or len(pts) == 0:
         return none, none
@@ -864,17 +871,10 @@ def _curved_roof(pts: np.ndarray, hag: np.ndarray, on_plane: np.ndarray,
       a wall): a heap of earth or gravel, or terrain the ground filter left out, rises
       from the ground on gentle flanks.
 
-    Measured on synthetic scenes scanned 0.3-0.5 m apart with 2.5-3 cm of noise (20
-    vaults, domes and shallow arcs, 10 draws each, and crowns seen from above, their tops
-    ellipsoids with bumps of 0-0.3 m, 10-50 % of the pulses echoing inside): the roofs
-    hold 0.94-1.00 of their points on the quadric and its plane (0.53-0.96 with dense
-    gable walls joined), are 0.62-0.92 solid (a vault cut by skylight ribbons, scanned
-    0.5 m apart, 0.44-0.52: found in 2 of 10 draws) and at most 1.5 % rough; the
-    crowns' smooth patches are 0-0.55 solid and 0.6-24 % rough, and of 180 draws of
-    crowns one more was building than before: a crown a tenth of the pulses enter, its
-    top a perfect ellipsoid, as smooth as a dome. AHN4's two large roofs (planar, but
-    as cluttered as real roofs are) are 0.38 and 0.53 solid, 1.3 and 2.9 % rough. The
-    mound and the cone of test_obstacles.py fail only the last test. On sparse scans
+    On synthetic vaults, domes and arcs scanned 0.3-0.5 m apart the roofs hold 0.94-1.00
+    of their points on the quadric and its plane, are 0.62-0.92 solid and at most 1.5 %
+    rough; the smooth patches of synthetic crowns are 0-0.55 solid and 0.6-24 % rough.
+    The mound and the cone of test_obstacles.py fail only the last test. On sparse scans
     (about a point per m², the ISPRS samples) most 1 m cells are empty and no patch is
     solid: no curved roof is found there."""
     dist, normal = quadric_fit(pts, threshold)
@@ -1102,12 +1102,13 @@ def _wires_sag_away(top_xy: np.ndarray, top_z: float, touching: np.ndarray,
                     own: Callable[..., np.ndarray] | None = None) -> bool:
     """True when the wires sag away from an object on every side: they hang from it.
 
-    top_xy (2,) is the object's top, top_z (m) its height, touching (T, 3) the wire points
-    next to it. A catenary
-    is highest at its supports, so away from a tower its wires are lower (a 300 m span with
-    8 m of sag drops ~4 m in 40 m); at a tree under the line the wires run level or rise
-    towards the next tower on at least one side (wire on one side only cannot tell them
-    apart: then the attachment decides). The top wire decides (95th percentiles):
+    top_xy (2,) m is the object's top on the map, top_z (m) the z of its column's highest
+    point, touching (T, 3) m the wire points next to it; wire_xyz (W, 3) m the wires, and
+    wire_xy_tree a tree of their x, y. A catenary is highest at its supports, so away from
+    a tower its wires are lower (a 300 m span with 8 m of sag drops ~4 m in 40 m); at a
+    tree under the line the wires run level or rise towards the next tower on at least one
+    side (wire on one side only cannot tell them apart: then the attachment decides). The
+    top wire decides (95th percentiles):
     a tower carries the highest wire, a tree touches lower ones at most. When the cloud
     holds no wire beyond SAG_NEAR (a narrow strip of a live scan) the attachment alone
     decides; when it holds wire only further than SAG_FAR, the touching pieces are no span.
@@ -1231,11 +1232,10 @@ def _lattice(p: np.ndarray, upper: np.ndarray, column: np.ndarray) -> bool:
     (M, 3) m, is a lattice, not a solid mass: at most TOWER_MAX_SOLID of its points lie in
     voxels of LATTICE_VOXEL with SOLID_NEIGHBOURS or more of their 26 neighbours occupied
     by the object. A tower's members stand apart, while a crown is a volume of foliage.
-    In a forest a few branch points pass the wire test, a crown they touch was taken for a
-    tower, remembered, and found again message after message (simulated forest flights of
-    10 s, seeds 0-2: 151 000, 30 000 and 188 000 high-vegetation points labelled tower):
-    its upper column is 10-65 % solid, against none of the towers of the AHN corridor
-    tiles, whole or streamed, and of the simulated corridor flights."""
+    In a forest a few branch points pass the wire test, and a crown they touch was taken
+    for a tower, remembered, and found again message after message: its upper column is
+    10-65 % solid, against none of the towers of the AHN corridor tiles, whole or
+    streamed, and of the simulated corridor flights."""
     up = upper & column
     if not up.any():
         return True
@@ -1341,27 +1341,12 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
         # A tower carries wires: they end at its arms, at or below its top (a tree under
         # the line stays below the wires next to it). Trees touching the tower join its
         # component, so only the column around its axis is tower: the middle of its upper
-        # half, arms and all (a flight beside a tower below its top sees the far face of
-        # its lower part: on the simulated corridor's second tower the mean of the points
-        # above 0.7 of the height lay 2.3 m off the axis, that middle 0.1 m; median of 26
-        # messages).
+        # half, arms and all (`_middle`: a flight beside a tower sees its near face densely).
         top = _middle(p[h > 0.5 * top_h, :2])
         stub = lab in stubs
         seen = _known_columns(top[None], known)[0] if len(known) and not stub else -1
         if stub:
-            # Lower than a tower, but standing in the column of one seen in an earlier
-            # strip: a strip leaving the simulated corridor's towers holds lattices 3-15 m
-            # high that were 18-28 m towers a second earlier. It is that tower's lower part
-            # when it holds the tower's band and the band's middle stands in its column.
-            inside = _known_columns(p[:, :2], known)
-            for k in np.unique(inside[inside >= 0]):
-                band = (h >= TOWER_BODY[0] * known[k, 3]) & (h < TOWER_BODY[1] * known[k, 3])
-                if band.sum() < TOWER_BAND_MIN:
-                    continue  # without the band its legs and the bushes round them look alike
-                top = _middle(p[band, :2])
-                if row_norm(top[None] - known[k, :2])[0] < known[k, 2]:
-                    seen = int(k)
-                    break
+            seen, top = _known_tower_of_stub(p, h, known)
             if seen < 0:
                 continue
         column = row_norm(p[:, :2] - top) < TOWER_RADIUS * top_h
@@ -1387,12 +1372,39 @@ def _towers(xyz: np.ndarray, hag: np.ndarray, members: np.ndarray, labels: np.nd
             # put its axis 2.2 m off; the strips leaving it hold its back, whose band's
             # middle lies 5 m from that first view's axis.
             found.append((float(top[0]), float(top[1]), TOWER_RADIUS * tower_h, tower_h))
-    # pieces of one tower (arms cut off by the wires) are one tower: the widest stands
+    return is_tower, feet, _widest_towers(found)
+
+
+def _known_tower_of_stub(p: np.ndarray, h: np.ndarray, known: np.ndarray
+                         ) -> tuple[int, np.ndarray]:
+    """Which of the towers `known` (K, 4: x, y, radius, height m) the object p (M, 3) m, h
+    (M,) m above ground, lower than a tower, is the lower part of (-1: none), and the
+    middle (2,) m of that tower's band TOWER_BODY in it (zeros for none): the first of the
+    towers in whose column it has points (in their order) of whose band it holds
+    TOWER_BAND_MIN points or more, the band's middle (`_middle`) standing in its column.
+    A strip leaving the simulated corridor's towers holds lattices 3-15 m high that were
+    18-28 m towers a second earlier; without the band, a tower's legs and the bushes round
+    them look alike."""
+    inside = _known_columns(p[:, :2], known)
+    for k in np.unique(inside[inside >= 0]):
+        band = (h >= TOWER_BODY[0] * known[k, 3]) & (h < TOWER_BODY[1] * known[k, 3])
+        if band.sum() < TOWER_BAND_MIN:
+            continue
+        middle = _middle(p[band, :2])
+        if row_norm(middle[None] - known[k, :2])[0] < known[k, 2]:
+            return int(k), middle
+    return -1, np.zeros(2)
+
+
+def _widest_towers(found: list[tuple[float, float, float, float]]) -> np.ndarray:
+    """(T, 4) x, y, radius, height (m): the towers `found` (the same, one tuple each) less
+    those whose axis stands in the column of a wider one kept: pieces of one tower (arms
+    cut off by the wires) are one tower, and the widest stands."""
     towers: list[tuple[float, float, float, float]] = []
     for t in sorted(found, key=lambda t: -t[2]):
         if all(np.hypot(t[0] - k[0], t[1] - k[1]) >= k[2] for k in towers):
             towers.append(t)
-    return is_tower, feet, np.array(towers).reshape(-1, 4)
+    return np.array(towers).reshape(-1, 4)
 
 
 def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground: np.ndarray, *,
@@ -1409,7 +1421,11 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
     taken as tested), of which only those supported (`_supported_wires`) lead on;
     known_buildings: (B, 4) their building points (ObstacleClasses.buildings);
     context: (C, 3) m, points of earlier messages beyond a thin strip's edge, neighbours in
-    the shape features only (`shape_context`)."""
+    the shape features only (`shape_context`). rng draws the buildings' RANSAC samples.
+
+    The steps are those of the module's docstring, each a function below: every point off
+    the ground starts as vegetation by its height and keeps that class unless a step
+    gives it another."""
     rng = rng or np.random.default_rng(0)
     n = len(xyz)
     classes = np.full(n, GROUND, np.uint8)
@@ -1417,112 +1433,236 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
     if n == 0:
         return ObstacleClasses(classes, object_id, ())
     hag = np.nan_to_num(np.asarray(height_above_ground, np.float64), nan=0.0)
-    nong = np.flatnonzero(~ground)
-    classes[nong] = vegetation_class(hag[nong])
+    off_ground = np.flatnonzero(~ground)
+    classes[off_ground] = vegetation_class(hag[off_ground])
     # 1. noise
-    if len(nong):
-        isolated = _isolated(xyz[nong], cfg.noise_radius, cfg.noise_min_neighbours)
-        noise = isolated | (hag[nong] < -BELOW_GROUND_NOISE)
-        classes[nong[noise]] = NOISE
-        lone_high = nong[isolated & (hag[nong] > cfg.wire_min_clearance)]  # wire echoes?
-        nong = nong[~noise]
-    else:
-        lone_high = nong
-    cand = nong[hag[nong] >= cfg.min_height]
-    objects: list[ObstacleObject] = []
-    towers, wires, buildings = np.zeros((0, 4)), np.zeros((0, 4)), np.zeros((0, 4))
+    off_ground, lone_high = _mark_noise(xyz, hag, off_ground, cfg, classes)
+    cand = off_ground[hag[off_ground] >= cfg.min_height]  # the candidates: shapes sought
     known_wires = _supported_wires(known_wires)
     known_buildings = (np.zeros((0, 4)) if known_buildings is None
                        else np.asarray(known_buildings, float).reshape(-1, 4))
-    if len(cand) >= 3:
-        shape = local_shape(xyz[cand], cfg.feature_radius, context=context)
-        # 2. wires
-        is_wire = _wires(xyz, cand, hag, shape, cfg, known_wires)
-        if is_wire.any() and (known_buildings[:, 3] > 0).any():
-            is_wire[is_wire] = ~_on_known_roofs(xyz[cand[is_wire]], known_buildings)
-        tested = is_wire.copy()  # (before the following through crowns)
+    if len(cand) < 3:
+        return ObstacleClasses(classes, object_id, (), candidates=xyz[cand])
+    # the candidates' neighbourhood shapes: linearity, planarity, main axis, roughness
+    shape = local_shape(xyz[cand], cfg.feature_radius, context=context)
+    # 2. wires; a strip across a roof an earlier message found is level and linear too
+    is_wire = _wires(xyz, cand, hag, shape, cfg, known_wires)
+    if is_wire.any() and (known_buildings[:, 3] > 0).any():
+        is_wire[is_wire] = ~_on_known_roofs(xyz[cand[is_wire]], known_buildings)
+    tested = is_wire.copy()  # passed the wire test itself (not followed through a crown)
+    classes[cand[is_wire]] = WIRE
+    # 3. objects of the rest; towers among the tall ones, by the wires of this message
+    # and of earlier ones (a strip may catch a tower but not the wires it carries)
+    groups = _group_objects(xyz, cand, hag, is_wire, cfg, object_id)
+    wire_xyz = np.concatenate([xyz[cand[is_wire]], known_wires])
+    tower, tower_feet, towers = _tower_objects(xyz, hag, cand, groups, wire_xyz, known_towers,
+                                               cfg)
+    classes[cand[tower]] = TOWER
+    # 4. buildings: large planar patches (and what clings to them), and the feet of walls
+    is_building, roofs = _buildings(xyz, cand, shape, ~is_wire & ~tower, cfg, rng,
+                                    known_buildings, hag[cand])
+    classes[cand[is_building]] = BUILDING
+    _wall_feet(xyz, off_ground[hag[off_ground] < cfg.min_height],
+               cand[roofs & (hag[cand] < cfg.min_height + WALL_FOOT_BAND)], classes)
+    # 5. poles and structures; wires go on through crowns and clutter (not into towers or
+    # roofs); the ground under a tower's legs
+    _mark_poles_and_structures(cand, shape, groups, tower, is_building, classes)
+    if is_wire.any() or len(known_wires):
+        _extend_wires(xyz, cand, hag, shape, cfg, is_wire, is_building, tower, known_wires)
         classes[cand[is_wire]] = WIRE
-        # 3. objects of the rest; towers among the tall ones, by the wires of this message
-        # and of earlier ones (a strip may catch a tower but not the wires it carries)
-        wire_xyz = np.concatenate([xyz[cand[is_wire]], known_wires])
-        rest = np.flatnonzero(~is_wire)
-        labels = voxel_components(xyz[cand[rest]], cfg.cluster_distance)
-        count, extent, height = _label_stats(labels, xyz[cand[rest]], hag[cand[rest]])
-        kept = count >= cfg.min_points
-        object_id[cand[rest[kept[labels]]]] = labels[kept[labels]]
-        next_id = int(labels.max()) + 1 if len(labels) else 0
-        known = (np.zeros((0, 4)) if known_towers is None
-                 else np.asarray(known_towers, float).reshape(-1, 4))
-        tall = kept & (height > cfg.tower_min_height)
-        # lower objects that reach a known tower's band and stand in its column (only
-        # those are searched: all points of the corridor flight's messages cost ~2 ms)
-        low = kept & ~tall
-        stubs = np.zeros(len(kept), bool)
-        if len(known):
-            low &= height >= TOWER_BODY[0] * known[:, 3].min()
-            look = rest[low[labels]]
-            stubs[labels[low[labels]][_known_columns(xyz[cand[look], :2], known) >= 0]] = True
-        is_tower, tower_feet, towers = _towers(
-            xyz, hag, cand[rest], labels, np.flatnonzero(tall), np.flatnonzero(stubs),
-            wire_xyz, known)
-        tower = np.zeros(len(cand), bool)
-        tower[rest[is_tower]] = True
-        classes[cand[tower]] = TOWER
-        # 4. buildings: large planar patches (and what clings to them); poles
-        is_building, roofs = _buildings(xyz, cand, shape, ~is_wire & ~tower, cfg, rng,
-                                        known_buildings, hag[cand])
-        classes[cand[is_building]] = BUILDING
-        _wall_feet(xyz, nong[hag[nong] < cfg.min_height],
-                   cand[roofs & (hag[cand] < cfg.min_height + WALL_FOOT_BAND)], classes)
-        pole = (kept & ((extent < 2.0) & (height > 3.0)
-                        | _structures(labels, shape, rest, height, extent)))[labels] & ~is_tower
-        classes[cand[rest[pole & ~is_building[rest]]]] = UNCLASSIFIED
-        # Wires go on through crowns and clutter (not into towers or roofs)
-        if is_wire.any() or len(known_wires):
-            followable = (hag[cand] > cfg.wire_min_clearance) & ~is_building & ~tower
-            seeds, seed_axis = _known_wire_seeds(known_wires, xyz[cand[followable]],
-                                                 xyz[cand[is_wire]], cfg)
-            _follow_wires(xyz[cand], followable, shape.axis, is_wire, seeds, seed_axis)
-            classes[cand[is_wire]] = WIRE
-        # Tower legs stand on the ground: their lowest points are within the ground filter's
-        # band, but a UAV must never take them for ground.
-        feet = [f for f in tower_feet if len(f)]
-        if feet:
-            # the ground points right under a tower's legs, not its whole footprint
-            ground_ids = np.flatnonzero(classes == GROUND)
-            dist, _ = tree_query(search_tree(np.concatenate(feet)), xyz[ground_ids],
-                                 distance_upper_bound=TOWER_FOOT_REACH,
-                                 workers=_workers(len(ground_ids)))
-            classes[ground_ids[np.isfinite(dist)]] = TOWER
-        if is_wire.any():
-            w = xyz[cand[is_wire]]
-            wires, voxel = _voxel_centroids(w, column_min(w), WIRE_MEMORY_VOXEL)
-            wires = np.column_stack([wires, np.bincount(voxel, tested[is_wire],
-                                                        len(wires)) > 0])
-        if is_building.any():
-            b = xyz[cand[is_building]]
-            buildings, voxel = _voxel_centroids(b, column_min(b), BUILDING_MEMORY_VOXEL)
-            roof = np.bincount(voxel, roofs[is_building], len(buildings)) > 0
-            buildings = np.column_stack([buildings, roof])
-        for mask, link in ((is_building, 2.0), (is_wire, 2.0), (tower, TOWER_LINK)):
-            ids = cand[mask]
-            if len(ids):
-                runs = voxel_components(xyz[ids], link)
-                object_id[ids] = next_id + runs
-                next_id += int(runs.max()) + 1
-        taken = is_building | is_wire | tower
-        if is_wire.any():  # a thin wire's lone echoes and small pieces (WIRE_ECHO_REACH)
-            small = cand[rest[~kept[labels]]]
-            small = small[(hag[small] > cfg.wire_min_clearance)
-                          & (vegetation_class(hag[small]) == classes[small])]
-            echoes = _wire_echoes(xyz, np.concatenate([lone_high, small]), cand[is_wire],
-                                  shape.axis[is_wire], classes, object_id)
-            taken |= np.isin(cand, echoes)  # (in their wire's object, not regrouped)
-        _regroup_leftovers(xyz[cand[rest]], labels, kept, taken[rest],
-                           object_id, cand[rest], next_id, cfg)
-        objects = _objects(xyz, hag, classes, object_id)
+    _mark_tower_feet(xyz, tower_feet, classes)
+    # what the next message is told: the wires and buildings, thinned
+    wires = _memory_rows(xyz[cand[is_wire]], tested[is_wire], WIRE_MEMORY_VOXEL)
+    buildings = _memory_rows(xyz[cand[is_building]], roofs[is_building],
+                             BUILDING_MEMORY_VOXEL)
+    # objects and their boxes: the buildings', wires' and towers' own; a thin wire's lone
+    # echoes join their wire's; what the others left of an object is grouped again
+    next_id = _number_class_objects(
+        xyz, cand, ((is_building, OBJECT_LINK), (is_wire, OBJECT_LINK), (tower, TOWER_LINK)),
+        groups.next_id, object_id)
+    taken = is_building | is_wire | tower
+    if is_wire.any():
+        echoes = _wire_echoes(xyz, _echo_candidates(hag, cand, groups, lone_high, classes, cfg),
+                              cand[is_wire], shape.axis[is_wire], classes, object_id)
+        taken |= np.isin(cand, echoes)  # (in their wire's object, not regrouped)
+    _regroup_leftovers(xyz[cand[groups.rest]], groups.labels, groups.kept, taken[groups.rest],
+                       object_id, cand[groups.rest], next_id, cfg)
+    objects = _objects(xyz, hag, classes, object_id)
     return ObstacleClasses(classes, object_id, tuple(objects), towers, wires, buildings,
                            xyz[cand])
+
+
+def _mark_noise(xyz: np.ndarray, hag: np.ndarray, off_ground: np.ndarray,
+                cfg: ObstaclesConfig, classes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Class NOISE for the non-ground points `off_ground` (indices into xyz (N, 3) m; hag
+    (N,) m above ground) with fewer than cfg.noise_min_neighbours others within
+    cfg.noise_radius m (`_isolated`) or more than BELOW_GROUND_NOISE m below the ground;
+    classes (N,) is updated in place. Returns the indices of the other points of
+    `off_ground`, and those of the isolated ones more than cfg.wire_min_clearance m up,
+    which may yet be a thin wire's lone echoes (`_wire_echoes`)."""
+    if len(off_ground) == 0:
+        return off_ground, off_ground
+    isolated = _isolated(xyz[off_ground], cfg.noise_radius, cfg.noise_min_neighbours)
+    noise = isolated | (hag[off_ground] < -BELOW_GROUND_NOISE)
+    classes[off_ground[noise]] = NOISE
+    lone_high = off_ground[isolated & (hag[off_ground] > cfg.wire_min_clearance)]
+    return off_ground[~noise], lone_high
+
+
+@dataclass(frozen=True)
+class _Objects:
+    """The candidates other than wire, grouped into objects (`_group_objects`): rest (R,)
+    their indices among the candidates and labels (R,) their object 0..L-1; per object,
+    kept (L,) bool: of cfg.min_points or more (an object; the others belong to none),
+    extent (L,) m: its box's horizontal diagonal, height (L,) m: its highest point above
+    ground; next_id: the first object id not taken by them."""
+
+    rest: np.ndarray
+    labels: np.ndarray
+    kept: np.ndarray
+    extent: np.ndarray
+    height: np.ndarray
+    next_id: int
+
+
+def _group_objects(xyz: np.ndarray, cand: np.ndarray, hag: np.ndarray, is_wire: np.ndarray,
+                   cfg: ObstaclesConfig, object_id: np.ndarray) -> _Objects:
+    """The candidates `cand` (C,) (indices into xyz (N, 3) m; hag (N,) m above ground) other
+    than wire (is_wire (C,) bool) grouped into objects: connected components of the voxels
+    of edge cfg.cluster_distance m. object_id (N,) is set, in place, to their label for the
+    points of the objects kept."""
+    rest = np.flatnonzero(~is_wire)
+    labels = voxel_components(xyz[cand[rest]], cfg.cluster_distance)
+    count, extent, height = _label_stats(labels, xyz[cand[rest]], hag[cand[rest]])
+    kept = count >= cfg.min_points
+    object_id[cand[rest[kept[labels]]]] = labels[kept[labels]]
+    next_id = int(labels.max()) + 1 if len(labels) else 0
+    return _Objects(rest, labels, kept, extent, height, next_id)
+
+
+def _tower_objects(xyz: np.ndarray, hag: np.ndarray, cand: np.ndarray, groups: _Objects,
+                   wire_xyz: np.ndarray, known_towers: np.ndarray | None,
+                   cfg: ObstaclesConfig) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+    """Which objects `groups` of the candidates `cand` (C,) (indices into xyz (N, 3) m; hag
+    (N,) m above ground) are towers (`_towers`): those taller than cfg.tower_min_height
+    that carry the wires wire_xyz (W, 3) m or stand where one of known_towers (K, 4: x, y,
+    radius, height m; None: none) stood, and the lower ones that are a known tower's lower
+    part (`_tower_stubs`). Returns the tower points (C,) bool over the candidates, the feet
+    (F, 3) m of each tower (`_tower_feet`) and the towers (T, 4) found."""
+    known = (np.zeros((0, 4)) if known_towers is None
+             else np.asarray(known_towers, float).reshape(-1, 4))
+    tall = groups.kept & (groups.height > cfg.tower_min_height)
+    stubs = _tower_stubs(xyz, cand, groups, tall, known)
+    is_tower, feet, towers = _towers(
+        xyz, hag, cand[groups.rest], groups.labels, np.flatnonzero(tall), np.flatnonzero(stubs),
+        wire_xyz, known)
+    tower = np.zeros(len(cand), bool)
+    tower[groups.rest[is_tower]] = True
+    return tower, feet, towers
+
+
+def _tower_stubs(xyz: np.ndarray, cand: np.ndarray, groups: _Objects, tall: np.ndarray,
+                 known: np.ndarray) -> np.ndarray:
+    """(L,) bool: the objects `groups` (of the candidates `cand`, indices into xyz (N, 3) m)
+    kept but not `tall` (L,) bool that reach the lowest band TOWER_BODY of the towers
+    `known` (K, 4: x, y, radius, height m) and have a point in one's column. Only those
+    objects' points are searched: all points of the corridor flight's messages cost
+    ~2 ms."""
+    low = groups.kept & ~tall
+    stubs = np.zeros(len(groups.kept), bool)
+    if len(known):
+        low &= groups.height >= TOWER_BODY[0] * known[:, 3].min()
+        look = groups.rest[low[groups.labels]]
+        stubs[groups.labels[low[groups.labels]][_known_columns(xyz[cand[look], :2], known)
+                                                >= 0]] = True
+    return stubs
+
+
+def _mark_poles_and_structures(cand: np.ndarray, shape: LocalShape, groups: _Objects,
+                               tower: np.ndarray, is_building: np.ndarray,
+                               classes: np.ndarray) -> None:
+    """Class UNCLASSIFIED for the points of the objects `groups` kept that are slender (a
+    box's horizontal diagonal under POLE_MAX_EXTENT m, more than POLE_MIN_HEIGHT m high:
+    poles) or built of beams (`_structures`: cranes, masts), those points that are neither
+    tower nor building (tower, is_building (C,) bool over the candidates `cand`, indices
+    into classes (N,), updated in place; shape: the candidates' `local_shape`)."""
+    rest, labels = groups.rest, groups.labels
+    slender = (groups.extent < POLE_MAX_EXTENT) & (groups.height > POLE_MIN_HEIGHT)
+    beams = _structures(labels, shape, rest, groups.height, groups.extent)
+    pole = (groups.kept & (slender | beams))[labels] & ~tower[rest]
+    classes[cand[rest[pole & ~is_building[rest]]]] = UNCLASSIFIED
+
+
+def _extend_wires(xyz: np.ndarray, cand: np.ndarray, hag: np.ndarray, shape: LocalShape,
+                  cfg: ObstaclesConfig, is_wire: np.ndarray, is_building: np.ndarray,
+                  tower: np.ndarray, known_wires: np.ndarray) -> None:
+    """Grow is_wire (C,) bool over the candidates `cand` (indices into xyz (N, 3) m; hag
+    (N,) m above ground; shape their `local_shape`) in place: the wires of this message,
+    and those of earlier ones known_wires (K, 3) m (`_known_wire_seeds`), followed along
+    their own axis (`_follow_wires`) through the candidates more than
+    cfg.wire_min_clearance m up that are neither building nor tower (is_building, tower
+    (C,) bool)."""
+    followable = (hag[cand] > cfg.wire_min_clearance) & ~is_building & ~tower
+    seeds, seed_axis = _known_wire_seeds(known_wires, xyz[cand[followable]],
+                                         xyz[cand[is_wire]], cfg)
+    _follow_wires(xyz[cand], followable, shape.axis, is_wire, seeds, seed_axis)
+
+
+def _mark_tower_feet(xyz: np.ndarray, tower_feet: list[np.ndarray],
+                     classes: np.ndarray) -> None:
+    """Class TOWER for the ground points (of xyz (N, 3) m, classes (N,) updated in place)
+    within TOWER_FOOT_REACH m of a tower's feet (tower_feet: (F, 3) m each,
+    `_tower_feet`): the ground right under its legs, not its whole footprint. A tower's
+    lowest points lie within the ground filter's band, but a UAV must never take its legs
+    for ground."""
+    feet = [f for f in tower_feet if len(f)]
+    if not feet:
+        return
+    ground_ids = np.flatnonzero(classes == GROUND)
+    dist, _ = tree_query(search_tree(np.concatenate(feet)), xyz[ground_ids],
+                         distance_upper_bound=TOWER_FOOT_REACH,
+                         workers=_workers(len(ground_ids)))
+    classes[ground_ids[np.isfinite(dist)]] = TOWER
+
+
+def _memory_rows(pts: np.ndarray, flag: np.ndarray, edge: float) -> np.ndarray:
+    """(V, 4) rows a message hands on (ObstacleClasses.wires, .buildings): the points pts
+    (P, 3) m thinned to the centroid (m) of each occupied voxel of `edge` m (counted from
+    their lowest corner), and 1 where a point of the voxel is flagged (flag (P,) bool),
+    else 0."""
+    if len(pts) == 0:
+        return np.zeros((0, 4))
+    centroids, voxel = _voxel_centroids(pts, column_min(pts), edge)
+    return np.column_stack([centroids, np.bincount(voxel, flag, len(centroids)) > 0])
+
+
+def _number_class_objects(xyz: np.ndarray, cand: np.ndarray,
+                          parts: tuple[tuple[np.ndarray, float], ...], next_id: int,
+                          object_id: np.ndarray) -> int:
+    """Objects of their own for the points of each class in `parts`, (mask (C,) bool over
+    the candidates `cand`, indices into xyz (N, 3) m; link m) in turn: the connected
+    components of their voxels of edge `link`, numbered from next_id on. object_id (N,) is
+    updated in place; returns the first id not taken."""
+    for mask, link in parts:
+        ids = cand[mask]
+        if len(ids):
+            runs = voxel_components(xyz[ids], link)
+            object_id[ids] = next_id + runs
+            next_id += int(runs.max()) + 1
+    return next_id
+
+
+def _echo_candidates(hag: np.ndarray, cand: np.ndarray, groups: _Objects,
+                     lone_high: np.ndarray, classes: np.ndarray,
+                     cfg: ObstaclesConfig) -> np.ndarray:
+    """Indices (into hag (N,) m above ground and classes (N,)) of the points that may be a
+    thin wire's echoes (`_wire_echoes`): the isolated points `lone_high` (indices) more
+    than cfg.wire_min_clearance m up, then the points of the candidates' pieces too small
+    to be objects (`groups`) that high that are still vegetation by height."""
+    small = cand[groups.rest[~groups.kept[groups.labels]]]
+    small = small[(hag[small] > cfg.wire_min_clearance)
+                  & (vegetation_class(hag[small]) == classes[small])]
+    return np.concatenate([lone_high, small])
 
 
 def _wire_echoes(xyz: np.ndarray, lone: np.ndarray, wire: np.ndarray, axis: np.ndarray,
@@ -1565,13 +1705,12 @@ def _structures(labels: np.ndarray, shape: LocalShape, rest: np.ndarray,
     (linearity over STRUCTURE_LINEARITY, main axis over STRUCTURE_STEEP from horizontal:
     jibs, masts, lattice members) and smooth (mean roughness under STRUCTURE_ROUGHNESS).
 
-    A crane stood among the trees as "high vegetation": 88 % of the corridor files'
-    cranes (class 26). Their objects hold 11-29 % of points on steep lines, roughness
-    0.14-0.24 m, and are 8.9-27.6 m wide; the files' trees (class 5), AHN4's (class 1)
-    1-7 %, 0.28-0.42 m (with 7 % one tree of 12AN2_20 went). Young trees of the simulated
-    flights, a trunk under a small crown, pass the beams and the roughness (13-37 %,
-    0.08-0.23 m) but are 3.4-5.5 m wide; pieces of towers not found as such (4-17 m wide)
-    go from vegetation to unclassified."""
+    Cranes otherwise stand among the trees as high vegetation. The corridor files'
+    cranes' objects hold 11-29 % of points on steep lines, roughness 0.14-0.24 m, and are
+    8.9-27.6 m wide; their trees and AHN4's 1-7 %, 0.28-0.42 m. Young trees of the
+    simulated flights, a trunk under a small crown, pass the beams and the roughness but
+    are 3.4-5.5 m wide. Pieces of towers not found as such (4-17 m wide) are structures
+    too."""
     n = np.bincount(labels, minlength=len(height))
     steep = np.abs(shape.axis[rest, 2]) > np.sin(np.radians(STRUCTURE_STEEP))
     beams = (shape.linearity[rest] > STRUCTURE_LINEARITY) & steep
@@ -1587,16 +1726,12 @@ def _wall_feet(xyz: np.ndarray, low: np.ndarray, walls: np.ndarray,
     """Class BUILDING for the points `low` (indices of non-ground points below
     `obstacles.min_height`) that stand under a wall: within WALL_FOOT_REACH on the map of
     the points `walls` (indices: the lowest band of the buildings' own planar or curved
-    patches, not what clings to them). Those feet were low vegetation: in the demo's 20 s
-    flight 2 866 building points in 47 messages, 0.2-0.5 m up, the commonest wrong class
-    after the ground's band; building recall of the simulated flights +0.5 to +1.5
-    points. A band of WALL_FOOT_BAND 3 m above `min_height`, not 1 m: a wall's patch often
-    starts a metre or two up (its lowest part, rough near the ground, clings to it), and
-    the demo's first 120 messages kept 810 feet as vegetation, 250 with 3 m (AHN4 level:
-    recall 0.9360 -> 0.9367, precision 0.8949 -> 0.8948). Not the band of everything
-    labelled building: on AHN4 that is mostly the reference's class 1 (fences, sheds
-    beside the walls), and its precision fell 0.004; with the patches alone AHN4 is level
-    (recall +0.0004, precision -0.0005). classes (N,) is updated in place."""
+    patches, not what clings to them). Without this those feet are low vegetation, the
+    commonest wrong class after the ground's band. The band reaches WALL_FOOT_BAND 3 m
+    above `min_height`: a wall's patch often starts a metre or two up (its lowest part,
+    rough near the ground, clings to it). Not the band of everything labelled building:
+    on AHN4 that is mostly fences and sheds beside the walls. classes (N,) is updated in
+    place."""
     if len(low) == 0 or len(walls) == 0:
         return
     near = np.flatnonzero(all_columns((xyz[low, :2] >= column_min(xyz[walls, :2]) - 1.0)
