@@ -9,61 +9,34 @@
 - ``ransac`` — the paper's PCL segmentation: per XY tile a RANSAC plane with the robust
   eigenvalue fit; its inliers are ground. Tiles whose fit is poor are split in four and
   re-run (the paper re-tiled its blocks 15 and 24 by hand).
-- ``hybrid`` (default) — chosen by measurement (see benchmarks/bench_ground.py): a raster
-  progressive morphological filter (Pingel et al. 2013, SMRF) on the grid of lowest points,
-  with low blunders removed first; the ground cells' surface is in-painted, points within a
-  slope-dependent band of it are ground, and the surface is rebuilt from them until the
-  labels repeat (at most 8 rounds). The rebuild rounds give back the convex terrain the
-  opening cuts (ridge crests, terrace rims): ISPRS mean total error 4.47 % -> 4.27 %, kappa
-  0.852 -> 0.857 with one parameter set (3 rounds before). Where the ground surface after
-  the opening is steeper than 0.8 only the opening's first 6 m of window count (narrow
-  terraces, embankment tops and spurs are not buildings): 4.27 % -> 4.11 %, kappa 0.860.
-  A cell is an object only if it is one in a second opening too, of the surface minus its
-  24 m median trend: 4.07 % -> 3.86 %, kappa 0.861 -> 0.867 (HybridSettings.trend_window);
-  with every test below in place, the second opening's objects alone: 3.52 % -> 3.37 %,
-  kappa 0.880 -> 0.883.
-  Rejected points on the rim of a plateau of real ground points (a smooth, gentle half-disc
-  whose plane passes through the point, with a drop of more than 2 m beside it) join the
-  ground after the last round: 3.86 % -> 3.74 %, kappa 0.867 -> 0.872 (_rim_points).
-  Then rejected points on the face of a cliff (ground above and below them within 5 m,
-  rising faster than 2:1) join, and a second rim pass judges the points near what the
-  first and the face test gave back: 3.74 % -> 3.65 %, kappa 0.872 -> 0.877 (samp53
-  0.558 -> 0.631; _face_points, HybridSettings.rim_passes). Not on dense scans, where the
-  opening resolves the faces it can (AHN corridor 07CZ2_14 lost 0.0004 of kappa to it).
-  Last, on sparse scans, ground points more than 0.15 m above all ground of the other
-  cells within 5 m (single bush and hedge points the band let in) leave the ground, twice:
-  3.65 % -> 3.52 %, kappa 0.877 -> 0.880, Type II 9.19 -> 8.18 % (_peak_points).
-  On dense scans (AHN, >= 4 ground points per m^2) the flat-ground band narrows from 0.5 to
-  0.15 m: corridor tile 07CZ2_14 ground kappa 0.845 -> 0.902, 12AN2_20 0.968 -> 0.985, AHN4
-  0.910 -> 0.949, ISPRS unchanged (HybridSettings.dense_threshold).
-  On dense scans, pieces of ground raised more than 2 m above the ground beside them with
-  nothing higher around them (roofs a strip caught at its edge or beside their own shadow,
-  which no window of the opening could cut off) leave the ground after the rounds, and so
-  do pits of a few cells (stray low points): streamed urban flight, building points
-  labelled ground 16.9 % -> 0.8 % (_islands_and_pits).
-  Measured and rejected (ISPRS means): segments of object cells re-judged by the step along
-  their boundary (4.27-14.6 %: on steep ground terrace pieces step up all round too, and
-  canopy edges join the ground smoothly); de-trending the opening by the first surface
-  (Gaussian 3-25 m, median 31 m, the surface itself: 4.25-4.47 %, samp53 worse); a per-point
-  check against a 0.5 m surface of the accepted ground (4.16-4.26 %); a cell size from the
-  point density (1.5-3 m cells on the sparse samples 5x-7x: worse on 52, 53, 61). Keeping only
-  cells that are objects both in the plain and the de-trended (31 m median) opening scored
-  4.00 % but cost a second opening and a full-resolution median filter (about 2 x the time;
-  the trend is now medians of 8 x 8 blocks, and the opening 5-8 x cheaper); long, narrow
-  object components with gentle flanks taken for embankments (3.85-4.24 %, samp52 or 51
-  worse); points within the band of any of the 4 cells around them, for break-line edges
-  (4.31 %; only on ground steeper than 0.8-3: 3.83-3.87 %, samp41 up to +0.8 points, and it
-  would accept wall and tower-leg feet). It is O(N) and raster-only: ~40 x faster than TIN
-  densification before the speed-up below (TIN rebuilds a Delaunay per round) and more
-  accurate on the ISPRS samples with one parameter set.
-
-Speed (15 ISPRS samples, best of 3-5, same process): 0.44 M points/s before the raster
-work was rebuilt, 0.98 M points/s after with identical labels, 0.70 M points/s with the
-second (de-trended) opening; pysmrf in the same run 13-17 k points/s on the shared 2-core
-machine. What made the difference: scipy's grey_opening replaced by `_window_extreme`
-(exact, 5-8 x faster per filter), in-painting and opening work arrays reused per call
-(fresh grid-sized arrays cost ~1 us per 4 KB page in faults here), and no masked writes
-over scattered holes (a where= write costs 20-100 x a plain pass on sparse scans).
+- ``hybrid`` (default) — a raster progressive morphological filter (Pingel et al. 2013,
+  SMRF) on the grid of lowest points, with low blunders removed first; the ground cells'
+  surface is in-painted, points within a slope-dependent band of it are ground, and the
+  surface is rebuilt from them until the labels repeat (at most 8 rounds: the rebuilds give
+  back the convex terrain the opening cuts, ridge crests and terrace rims). Beyond SMRF
+  (the steps of `morphological_ground`, their constants in `HybridSettings`):
+  - on ground steeper than 0.8 only the opening's first 6 m of window count: narrow
+    terraces, embankment tops and spurs are not buildings;
+  - the object cells are those of a second opening, of the surface minus its 24 m median
+    trend: on a hillside terrace edges and spurs stand out of the plain opening, not of
+    the de-trended one, where a building stands out of both;
+  - after the last round, rejected points on the rim of a plateau of ground points (a
+    smooth, gentle half-disc whose plane passes through the point, a drop of more than
+    2 m beside it) join the ground, and on sparse scans so do points on the face of a
+    cliff (ground above and below them within 5 m, rising faster than 2:1), then the rims
+    near those once more;
+  - on sparse scans, ground points more than 0.15 m above all ground of the other cells
+    within 5 m (single bush and hedge points the band let in) leave the ground, twice;
+  - on dense scans (>= 4 ground points per m^2) the flat-ground band narrows from 0.5 to
+    0.15 m, and pieces of ground raised more than 2 m above the ground beside them with
+    nothing higher around them (roofs a strip caught at its edge or beside their own
+    shadow, which no window of the opening could cut off) leave the ground after the
+    rounds, as do pits of a few cells (stray low points).
+  It is O(N) and raster-only, many times faster than TIN densification (which rebuilds a
+  Delaunay per round) and more accurate on the ISPRS samples with one parameter set
+  (benchmarks/bench_ground.py). How each step and constant was chosen, what was measured
+  and rejected, and how the filter got its speed: docs/measurements.md, "Ground filter:
+  how the hybrid got here".
 
 Height above ground of every point comes from the ground surface, never from a sensor
 height: for `hybrid` the in-painted raster of the ground points, read bilinearly; for `tin`
@@ -91,12 +64,6 @@ HIGH_SEED_DROP = 5.0  # m: a seed this far above its neighbours is an object's l
 # vertex S is tiny and the angle meaningless (a ground point 0.3 m from an accepted one
 # and 0.12 m off the facet's plane is at 23 degrees), so real ground there never joined
 # (ISPRS samp22: 56 % of the ground left out failed the angles alone, with d < 1 m).
-# ISPRS mean total error / kappa with the box seeds and the plane seed test: 11.36 % / 0.700
-# (Type I 15.9 %) without a floor, 8.22 % / 0.762 (Type I 8.7 %, Type II 8.0 %) with 2 m;
-# all passing points of a facet at once instead of the closest: 1.5 / 2 / 3 m 8.22 / 7.75 /
-# 7.81 %, kappa 0.763 / 0.770 / 0.762 (3 m: Type II 15.5 %), but then a facet takes its
-# points before it is split and `tin.min_edge` no longer bounds the density; 15 degrees
-# instead of 20 (1.5 m, all at once) 9.94 %.
 ANGLE_MIN_REACH = 2.0  # m
 # Rounds of the raster filter's low-blunder test (morphological_ground), each without the
 # blunders found before: the simulator's echoes come in clusters of 2-3.
@@ -109,12 +76,8 @@ class HybridSettings:
 
     The first four are the `ground.*` parameters (their defaults the schema's); the rest
     are the method's constants, fields so that tests and docs/figures.py can turn a test
-    off (0) and show what it does.
-
-    Measured on the 15 ISPRS samples (mean total error, one set for all, 3 rounds): slope
-    0.15 / 0.25 / 0.3 -> 4.54 / 4.53 / 4.95 %; window 12 / 24 / 30 m -> 4.78 / 4.46 /
-    4.46 %; threshold 0.4 / 0.6 m and scalar 0.75 / 2.0 all worse or level; cell 1.5 m is
-    2.7 x faster at 4.48 %, cell 2 m 4.94 %, cell 0.5 m 6.13 %.
+    off (0) and show what it does. What each was measured against and the values tried:
+    docs/measurements.md, "Ground filter: how the hybrid got here".
     """
 
     cell: float = GroundConfig.cell  # m
@@ -127,51 +90,21 @@ class HybridSettings:
     low_window: int = 7  # cells, the neighbourhood of the low-blunder test
     # Where that window holds no other ground (see _lone_low_cells), a point more than
     # `low_outlier` plus `lone_slope` times the distance below the nearest ground within
-    # `lone_reach` is a blunder too: a noise echo beyond a strip's edge. Judged on the first
-    # labels' ground, in pieces of up to `lone_cells` (echoes of one strip a few metres
-    # apart). Simulated 10 s flights, the simulator's noise echoes taken for ground: mixed
-    # 57 -> 1, corridor 48 -> 0, urban 104 -> 7, forest 52 -> 2 (of 600-1000); the clusters
-    # of 2-3 low points added to every message (see pit_cells) 4.2 -> 1.9 % in ground
-    # (corridor), 10 -> 5.2 % (urban); ground kappa and Type I of those flights and of AHN
-    # whole unchanged, AHN4 streamed 0.922 -> 0.923; on ISPRS one point of 15 samples
-    # changes (sparse, but the window is rarely empty); ~0.4 ms a message, ~5 % of the ISPRS
-    # ground time. Each echo had sunk a bubble of the rolling DEM 20 m wide and 5-15 m deep
-    # (bench_rolling_dem.py): filled cells within 4 m of the data more than 1 m off the true
-    # terrain 40 / 31 / 45 / 22 % -> 0 / 0 / 7.5 / 0 %, the same as the DEM of the reference
-    # ground but on the urban flight. Measured (echoes in ground, the same four flights):
-    # lone_slope 0.5 / 0.3 / 0.2: 4 / 7 / 38 / 17, 2 / 0 / 15 / 9, 1 / 0 / 10 / 6 (the urban
-    # ones lie 15-30 m from any ground, which the slope lets fall too far); lone_reach 15 m:
-    # urban 31; one cell at a time, not pieces (0.3): 2 / 5 / 18 / 9. Judged after the label
-    # rounds: the same, but the surface rebuilt once more, +4 ms a message. Judged on every
-    # cell's lowest point before any labels: a street seen alone between roofs has only
-    # roofs nearest (urban building points in ground 0.78 -> 0.92 %). A lone real ground
-    # point on terrain falling faster than lone_slope beyond a strip's edge is lost: one
-    # point, where a kept echo sinks the DEM around it. lone_slope 0.1 -> 0.05
-    # (echoes at a strip's corner 3.6-3.7 m below ground 15-20 m off stayed), with the
-    # blunder test run again without the blunders it found (LOW_ROUNDS: a deep echo
-    # shielded a shallower one beside it): the urban flights' echoes in ground 5 / 7 / 1
-    # -> 0 / 0 / 0 (seeds 0-2); the urban rolling DEM's filled cells within 4 m of the data
-    # more than 1 m off 7.5 -> 0 %, RMSE within 2 m 0.83 -> 0.02 m (reference ground
-    # 0.016 m); ISPRS the same but samp31 2.71 -> 2.68 % (the rounds).
+    # `lone_reach` is a blunder too: a noise echo beyond a strip's edge, which sank a bubble
+    # of the rolling DEM 20 m wide and 5-15 m deep. Judged on the first labels' ground (on
+    # every cell's lowest point, a street seen alone between roofs has only roofs nearest),
+    # in pieces of up to `lone_cells` (echoes of one strip a few metres apart). A lone real
+    # ground point on terrain falling faster than lone_slope beyond a strip's edge is lost:
+    # one point, where a kept echo sinks the DEM around it.
     lone_reach: float = 30.0  # m, how far the cells judging a lone one are sought; 0: off
     lone_slope: float = 0.05  # rise over run the ground may fall towards a lone cell
     lone_cells: int = 4  # cells of a piece judged as lone at most
     # Where the ground surface after the opening is steeper than `steep_slope`, only the
     # flags of the opening steps up to `steep_window` count (the same run, no extra
-    # opening): large windows cut narrow terraces, embankments and spurs there. ISPRS mean
-    # total error 4.27 -> 4.11 %, kappa 0.857 -> 0.860 (samp24 5.66 -> 4.19 %, samp41
-    # 5.96 -> 5.36 %, samp23 6.69 -> 6.45 %; no sample worse by more than 0.06 points).
-    # Window 3 / 5 / 8 / 10 m: 4.29 / 4.15 / 4.12 / 4.18 %; slope 0.5 / 0.6 / 1.0:
-    # 4.20 / 4.13 / 4.11 %; the slope smoothed (Gaussian 5 m) first: 4.25 %.
+    # opening): large windows cut narrow terraces, embankments and spurs there.
     steep_window: float = 6.0  # m
     steep_slope: float = 0.8  # rise over run of the ground surface
     # Label / rebuild-surface rounds, at most; they stop early once the labels repeat.
-    # ISPRS mean total error / kappa: 3 rounds 4.47 % / 0.852, 8 rounds 4.27 % / 0.857,
-    # 12 rounds no further gain; with the de-trended opening 5 / 6 / 7 / 8 rounds 3.89 /
-    # 3.88 / 3.88 / 3.87 %. Also measured with it and rejected: the band's slope capped at
-    # 0.5 / 0.75 / 1.5 instead of 1: 4.18 / 4.11 / 4.05 % (samp41 +0.33); 2 / 8 / 16
-    # in-painting smoothing rounds instead of 4: 4.09 / 4.07 / 4.08 %; the band's slope taken
-    # again from each rebuilt surface: 4.11-4.12 % (all before the trend, baseline 4.07 %).
     passes: int = 8
     # Dense scans (AHN: 10-60 points per m^2): the lowest ground point of a 1 m cell lies
     # within the noise of the ground, so the band above it need not cover interpolation
@@ -179,12 +112,7 @@ class HybridSettings:
     # fall outside it. The flat-ground threshold narrows from `threshold` to
     # `dense_threshold` as the ground points of the first labels, per m^2 over the 3 x 3
     # cells around a point, go from `dense_from` to `dense_full`. ISPRS (about 1 ground
-    # point per m^2, locally up to 7 in Stuttgart) keeps its labels. Ground kappa
-    # 07CZ2_14 / 12AN2_20 / AHN4: 0.845 / 0.968 / 0.910 -> 0.902 / 0.985 / 0.949.
-    # dense_threshold 0.12 / 0.14 / 0.16 / 0.18 m: 07CZ2_14 0.879 / 0.899 / 0.901 / 0.894
-    # (12AN2_20 0.984-0.986, AHN4 0.944-0.954);
-    # from / full 6 / 12: 0.900 / 0.986 / 0.948; 2 / 6: 0.903 / 0.985 / 0.951 (ISPRS level);
-    # 1 / 4: ISPRS 4.07 -> 4.08 %.
+    # point per m^2) keeps its labels.
     dense_threshold: float = 0.15  # m
     dense_from: float = 4.0  # ground points per m^2
     dense_full: float = 10.0  # ground points per m^2
@@ -194,47 +122,16 @@ class HybridSettings:
     # `trend_block` cells, bilinear back to the cells. On a hillside the plain opening
     # takes terrace edges and spurs for objects, the de-trended one does not; a building
     # stands out in both. The first opening only finds the surface the trend is taken
-    # from (and, with the second, the steep-window flags, `_steep_objects`).
-    # Introduced as a veto (objects of both openings): ISPRS mean total error 4.07 ->
-    # 3.86 %, kappa 0.861 -> 0.867 (samp23 7.05 -> 4.96 %, samp52 3.85 -> 3.41 %, samp53
-    # 7.12 -> 6.66 %; worst samp12 3.19 -> 3.26 %). Later, with the other tests in
-    # place, the second opening alone: 3.52 -> 3.37 %, kappa 0.880 -> 0.883, 6 x 6 blocks
-    # with kappa > 0.8 83.3 -> 84.7 %, Type I 1.88 -> 2.13 %, Type II 8.17 -> 7.11 %
-    # (samp31 2.68 -> 1.78 %, samp51 3.00 -> 2.30 %, samp54 3.22 -> 2.73 %; worst samp24
-    # 4.27 -> 4.36 %, samp23 4.69 -> 4.87 %): the plain opening vetoed low objects where
-    # the trend bends. AHN and corridor tiles (flat) unchanged. Both flag sets for the
-    # steep windows as well: 3.71 %. Measured (second opening alone): trend 16 / 32 / 40 m
-    # 3.63 / 3.34 / 3.34 % (blocks 83.8 / 84.2 / 84.2 %); slope 0.18 / 0.22 3.40 / 3.62 %;
-    # window 16 / 20 m 3.45 / 3.37 %. Before: trend 24 / 31 / 40 / 56 m on 8-cell blocks
-    # 3.86 / 3.87 / 3.88 / 3.93 %; 21 / 28 / 31 / 36 / 45 / 61 m on 4-cell blocks 3.90 /
-    # 3.89 / 3.87 / 3.88 / 3.88 / 3.96 %; the trend of the lowest points instead of the
-    # ground surface (buildings raise it): 4.95-5.23 %; de-trending by the surface itself:
-    # 3.99 %. The second opening and the trend cost ~30 % of the points per second
-    # (0.98 -> 0.70 M/s).
+    # from (and, with the second, the steep-window flags, `_steep_objects`). The trend is
+    # of the ground surface, not of the lowest points, which buildings raise.
     trend_window: float = 24.0  # m; 0: no second opening
     trend_block: int = 8  # cells
     # Rims of terrace steps and cliffs (see _rim_points): after the last round, a rejected
     # point joins the ground when the real ground points in a half-disc beside it form a
     # smooth, gentle, two-dimensional plateau whose plane passes through it, and ground
-    # lies more than `rim_drop` below it within `rim_window` (the step). One pass, no
-    # rebuild. ISPRS mean total error 3.86 -> 3.74 %, kappa 0.867 -> 0.872 (samp53
-    # 6.66 -> 5.02 %, samp52 3.41 -> 3.00 %; worst samp71 +0.15, samp51 +0.14 points); AHN
-    # ground kappa unchanged; ~12 % of the filter's CPU time (only the lowest point of a
-    # cell judged, float32 sums, an unbalanced kd-tree).
-    # Measured (mean total error): rim_drop 1 / 3 m 3.74 / 3.74 %; rim_window 4 / 8 m
-    # 3.86 / 3.72 % (8 m not checked on AHN); rim_max_slope 0.7 3.75 %; rim_neighbours 12
-    # 3.75 %; rim_below 0.5 m 3.74 %. On the points after the filter, before the raster
-    # pre-selection (8 half-discs, all rejected points judged, 2.4 x the filter's time):
-    # the drop taken from the opposite half-disc's points 3.77-3.79 %, none 3.78 %;
-    # rim_max_rms 0.15 m, rim_band 0.3 m: fewer rims (samp53 -0.7 to -0.9 points instead of
-    # -1.3); rim_spread 1.5 m: almost none; 4 half-discs 3.82 %; 24 neighbours: samp21 and
-    # samp42 worse. The raster pre-selection (ground at the point's level and > rim_drop
-    # below it within the window) both scores better and leaves ~12 % of the candidates.
-    # A second pass 3.71 % / 0.873, a surface rebuild and band test after the pass 3.72 % /
-    # 0.873, both 3.69 % / 0.874 (samp71 +0.24, samp51 +0.21 points), each +10-15 % CPU
-    # on top of the test's ~10 %: over the budget. samp61's embankment is no rim (its
-    # flanks are as steep as walls at 2.4 m spacing, its top rough by +-1 m): -0.09 points.
-    rim_window: float = 6.0  # m; 0: no rim test
+    # lies more than `rim_drop` below it within `rim_window` (the step). No surface
+    # rebuild between passes (each rebuild and band test cost more than the test itself).
+    rim_window: float = 6.0  # m; 0: no rim test (and no peak test)
     rim_drop: float = 2.0  # m
     rim_band: float = 0.5  # m, above the plateau's plane
     rim_below: float = 1.5  # m, below it (rounded convex edges)
@@ -245,23 +142,14 @@ class HybridSettings:
     rim_spread: float = 1.0  # m
     rim_near: float = 4.0  # m
     # Rim passes: the second judges only the rejected points near what the first pass and
-    # the face test (below) gave back, whose rims the new ground can now carry. ISPRS mean
-    # kappa / total error with the face test: 1 pass 0.8756 / 3.68 %, 2 passes 0.8771 /
-    # 3.65 % (all points judged again: 0.8774 / 3.64 % at 1.8 x the pass's time), a third
-    # pass and face test 0.8779 / 3.64 %.
+    # the face test (below) gave back, whose rims the new ground can now carry.
     rim_passes: int = 2
     # Faces of cliffs and terrace walls (see _face_points), after each rim pass but the
     # last: a rejected point with ground more than `face_rise` above and below it among
     # its `face_neighbours` nearest ground points within `face_radius`, an upper and a
     # lower one of them rising faster than `face_steep` (rise over run) from one to the
-    # other. ISPRS mean kappa 0.8722 -> 0.8756 after one rim pass (samp53 0.558 -> 0.611;
-    # samp24 -0.004, samp11 +0.001: bushes on steep banks). Measured with two rim passes
-    # (kappa): face_radius 4 / 5 / 6 m 0.8763 / 0.8774 / 0.8777; face_steep 1.5 / 2 / 3
-    # 0.8774 / 0.8774 / 0.8766; face_rise 0.5 / 1 / 2 m 0.8773 / 0.8774 / 0.8766;
-    # face_neighbours 16 0.8770; only the lowest point of a cell judged 0.8769; the test
-    # on the ground before the rims (same pass) 0.8745, before the rim pass 0.8741; the
-    # segment between the upper and the lower point within 0.5-1 m of the point (instead
-    # of the steepness) 0.8724-0.8728: cliff faces are not straight at 2.4 m spacing.
+    # other. The steepness, not a straight segment through the point: cliff faces are not
+    # straight at 2.4 m spacing.
     face_radius: float = 5.0  # m; 0: no face test
     face_rise: float = 1.0  # m
     face_steep: float = 2.0  # rise over run between the upper and the lower ground point
@@ -269,16 +157,7 @@ class HybridSettings:
     # Peaks (see _peak_points), after the rims and faces, on sparse scans only: a ground
     # point more than `peak_rise` above every ground point of the other cells within
     # `peak_window` (a square) leaves the ground, `peak_passes` times (the second pass
-    # takes what the first uncovered: two-point bushes). ISPRS mean kappa 0.8771 -> 0.8801,
-    # total error 3.65 -> 3.52 %, blocks with kappa > 0.8 82.1 -> 83.3 % (Type II 9.19 ->
-    # 8.18 %: samp51 0.896 -> 0.908, samp54 0.915 -> 0.935, samp52 0.844 -> 0.853,
-    # samp71 0.896 -> 0.902; samp53 0.631 -> 0.618, samp61 0.777 -> 0.769: rough ground
-    # at 2.4 m spacing); ~2 % of the filter's CPU; AHN unchanged (dense). Measured (kappa):
-    # peak_rise 0.1 / 0.2 / 0.25 m 0.8790 / 0.8795 / 0.8796; peak_window 4 / 6 m 0.8787 /
-    # 0.8797; 1 / 3 passes 0.8794 / 0.8797. With it, the band's slope capped at 2 instead
-    # of 1 on sparse scans: 0.8808 / 3.50 %, but the band then takes most cliff faces
-    # itself (test_ground_faces) and the corridor tile 07CZ2_14 lost 0.0005 when the cap
-    # followed the density ramp: not taken.
+    # takes what the first uncovered: two-point bushes).
     peak_window: float = 5.0  # m; 0: no peak test
     peak_rise: float = 0.15  # m
     peak_passes: int = 2
@@ -286,26 +165,14 @@ class HybridSettings:
     # piece of ground with ground of other pieces more than `island_rise` lower beside it
     # and none more than that higher is a roof the opening could not cut off (its own
     # higher cells do not count: a roof pitched at 40 degrees or more rises 2 m within the
-    # reach; simulated urban flights of 10 s, seeds 0-2, building points more than 1 m up
-    # labelled ground 882 / 3 222 / 3 698 -> 355 / 866 / 237 with the walls below, next).
-    # The walls under an island's edges, in the band of the surface across the roof, leave
-    # with it when the surface without it puts them outside the band. A UAV strip often catches
-    # a roof at its edge, or beside the building's own shadow, so that no window of the
-    # opening holds ground on every side, and the rounds then spread the roof's ground
-    # across it. Streamed 10 s flights (building points labelled ground, ground kappa):
-    # urban seed 1 16.9 -> 0.8 %, 0.881 -> 0.994; seed 0 8.3 -> 1.7 %, 0.980 -> 0.995;
-    # forest 2.9 -> 0.4 %; mixed and corridor unchanged; the AHN4 tile streamed as strips
-    # kappa 0.853 -> 0.922, building recall 0.67 -> 0.76; whole AHN files and ISPRS
-    # unchanged. Measured: island_rise 1.5 / 2.5 m the same, 3.5 m AHN4 0.892;
-    # island_connect 0.5 / 1.5 / 2 m AHN4 0.920 / 0.919 / 0.919; island_reach 2 / 5 m the
-    # same; island_extent 30 m AHN4 0.853 (its roofs are larger), 36-1000 m the same. Stray
-    # low points the blunder test missed (two that shield each other) are lower ground too:
-    # counted, they made the whole strip an island (corridor flight ground kappa 0.458,
-    # urban 0.743), hence `island_min_cells` and `island_pit_share`; with 5 clusters of 2-3
-    # points 3-6 m deep added to every message, Type I stays 0.27 % (corridor) and 0.48 %
-    # (urban, 0.49 % without the test). Lower pieces of 3 cells or more only: AHN4 0.895.
-    # On sparse scans (ISPRS: most 1 m cells empty, ground pieces not connected) ISPRS
-    # mean total error 3.52 -> 4.82 %: not there.
+    # reach). The walls under an island's edges, in the band of the surface across the
+    # roof, leave with it when the surface without it puts them outside the band. A UAV
+    # strip often catches a roof at its edge, or beside the building's own shadow, so that
+    # no window of the opening holds ground on every side, and the rounds then spread the
+    # roof's ground across it. Stray low points the blunder test missed (two that shield
+    # each other) are lower ground too: counted, they made the whole strip an island, hence
+    # `island_min_cells` and `island_pit_share`. Not on sparse scans (ISPRS: most 1 m cells
+    # empty, ground pieces not connected; its total error 3.52 -> 4.82 %).
     island_rise: float = 2.0  # m; 0: no island test
     island_connect: float = 1.0  # m, the largest step between neighbouring cells of a piece
     island_reach: float = 3.0  # m, how far beside a piece lower or higher ground is sought
@@ -313,15 +180,11 @@ class HybridSettings:
     island_pit_share: float = 0.8  # of a window higher ground around a pit
     island_min_cells: int = 2  # the smallest piece of lower ground that counts
     # Pits of up to `pit_cells` cells leave the ground too (their points within
-    # island_rise of the pit's floor): with the clusters above added, the share of their
-    # points taken for ground 22.1 -> 3.4 % (corridor), 25.6 -> 10.0 % (urban), Type I
-    # 0.27 -> 0.21 %, 0.48 -> 0.43 %; the flights as simulated, AHN whole and streamed
-    # unchanged.
+    # island_rise of the pit's floor).
     pit_cells: int = 4
     # Where the raster's cells fall: its corner lies `anchor` (x, y) cells, 0 to 1, before
     # the lowest x and y of the points. Not a setting: a measure of how much the labels
-    # owe to the grid's placement (benchmarks/bench_ground.py, "grid placements"). ISPRS
-    # mean kappa over 6 placements 0.873-0.883.
+    # owe to the grid's placement (benchmarks/bench_ground.py, "grid placements").
     anchor: tuple[float, float] = (0.0, 0.0)
 
 
@@ -403,10 +266,9 @@ def _locate(tri: Delaunay, xy: np.ndarray, max_steps: int = 64) -> np.ndarray:
     A walk for all points at once: from a facet of the point's nearest vertex, step to the
     neighbour across the edge the point lies beyond, until the point is inside (most take
     0-2 steps). Not Qhull's own walk: on a dense TIN it often fails on slivers and falls
-    back to trying every facet, so locating the points took 94 of 103 s of a 20 000-point
-    slope (one round 9.8 s; this ~30 ms on an ISPRS sample). A point on an edge gets the
-    facet its walk meets first; a point still walking after `max_steps` is left to
-    Qhull."""
+    back to trying every facet (most of the time of a 20 000-point slope). A point on an
+    edge gets the facet its walk meets first; a point still walking after `max_steps` is
+    left to Qhull."""
     out = np.full(len(xy), -1, np.int64)
     if len(xy) == 0 or len(tri.simplices) == 0:
         return out
@@ -447,11 +309,9 @@ def tin_densification(xyz: np.ndarray, cfg: TinConfig, *, fixed: np.ndarray | No
     plane of each facet, join the ground (a batch per round), and the TIN is rebuilt,
     until no point joins or `cfg.max_iterations` rounds. Made better: virtual seeds round the box
     (`_box_seeds`), odd seeds judged against their neighbours' plane (`_drop_odd_seeds`,
-    with drop_odd_seeds) and the vertex angles judged from ANGLE_MIN_REACH at least.
-    ISPRS mean total error / kappa 15.84 % / 0.607 -> 8.20 % / 0.763 (Type I 22.9 -> 8.7 %,
-    Type II 4.1 -> 8.0 %); a 17 degree slope 13 -> 96 % ground. ~4 s per ISPRS sample
-    (the 15 in 58 s; samp11 11 -> 7.7 s of CPU), most of it Qhull's triangulation, one a
-    round.
+    with drop_odd_seeds) and the vertex angles judged from ANGLE_MIN_REACH at least (the
+    figures: docs/measurements.md, "Ground filter: how the hybrid got here"). Most of its
+    time is Qhull's triangulation, one a round.
 
     fixed: (F, 3) extra ground points (the streaming context), part of the TIN, not output.
     """
@@ -522,10 +382,10 @@ class _Inpainter:
     4 KB page on the 2-core test machine) as ten passes of arithmetic over it, and the
     hybrid filter in-paints the same grid shape up to 12 times per cloud.
 
-    The pyramid is float32: its passes are memory-bound, and half the bytes took the
-    hybrid filter's CPU on the 15 ISPRS samples from 0.69 to 0.60 s with the same labels
-    (also on the AHN tiles). The known cells come back exact; a filled cell is good to
-    ~1e-7 of the grid's values (the filter's are centred: micrometres).
+    The pyramid is float32: its passes are memory-bound, and half the bytes cost the
+    hybrid filter ~13 % less CPU with the same labels. The known cells come back exact; a
+    filled cell is good to ~1e-7 of the grid's values (the filter's are centred:
+    micrometres).
     """
 
     def __init__(self, shape: tuple[int, int]) -> None:
@@ -687,25 +547,16 @@ class _Opening:
     """Progressive morphological opening of (rows, cols) grids of one shape, work arrays kept.
 
     Square windows, not SMRF's disks. A square fits a diagonal strip only up to 0.35 of its
-    width (a disk up to 0.5), so it cuts diagonal embankments that a disk leaves: measured
-    with disks (scipy footprints, every other setting as here) ISPRS samp61 kappa 0.769 ->
-    0.839, but the mean total error 3.52 -> 4.30 % and kappa 0.880 -> 0.865 (samp31 0.945
-    -> 0.850, samp21 0.956 -> 0.917: low objects flagged later, when slope x radius is
-    higher); with disks and slope 0.15 3.57 % / 0.8791, with octagons and slope 0.15
-    3.48 % / 0.8798 (blocks 84.2 %), samp61 back to 0.777 / 0.756. Not taken: 10 x slower
-    with scipy's footprints and no clear gain. Also measured: a cell is an object only if
-    squares and squares turned 45 degrees (of the same half-width) both flag it, so that a
-    strip of any direction fits one of them: samp61 0.769 -> 0.807, samp23 0.906 -> 0.924,
-    but samp31 0.945 -> 0.918, samp51 0.908 -> 0.884; mean 3.69-3.75 % / 0.877-0.879,
-    blocks 80.9-81.4 % (in the plain opening, the de-trended one, or both).
+    width (a disk up to 0.5), so it cuts diagonal embankments that a disk leaves; but disks
+    flag low objects later (when slope x radius is higher), scored worse on ISPRS as a
+    whole, and are 10 x slower with scipy's footprints (docs/measurements.md, "Ground
+    filter: how the hybrid got here").
 
-    The opening itself runs in float32 (its passes are memory-bound, as the in-painting's):
-    the hybrid filter 7-10 % faster on the 15 ISPRS samples (0.45 -> 0.48 M points/s,
-    medians of 8 interleaved runs), and of the 18 real files' 1.84 M points 7 labels
-    change, on samp22 and samp41: steps equal to the threshold to the centimetre, which
-    rounding decides either way (mean total error and kappa the same to 0.001 %). The
-    values are centred micrometres, so a cloud moved by whole metres still rounds the
-    same. `work`, `scratch` and `eroded` (float64) serve the rim, peak and island windows.
+    The opening itself runs in float32 (its passes are memory-bound, as the in-painting's:
+    7-10 % faster). Steps equal to the threshold to the centimetre may round either way
+    (7 labels of the real files' 1.84 M points changed with it). The values are centred
+    micrometres, so a cloud moved by whole metres still rounds the same. `work`, `scratch`
+    and `eroded` (float64) serve the rim, peak and island windows.
     """
 
     def __init__(self, shape: tuple[int, int], max_radius: int) -> None:
@@ -1645,8 +1496,8 @@ def _order_free_sample(xyz: np.ndarray, size: int) -> np.ndarray | None:
     (N <= 2 `size`, coordinates that are not float32/64, or points sharing so few x, y
     values that the sample came out too small: the quartiles of all, exact).
 
-    Every k-th point, as before, gave a cloud in another order other quartiles, and the
-    points near a bound changed sides. The quartiles of all points (np.partition) cost
+    Every k-th point would give a cloud in another order other quartiles, and the points
+    near a bound would change sides. The quartiles of all points (np.partition) cost
     1.3 ms a column per 50 000 points, 15 ms per 500 000; this sample ~0.15 and ~2 ms."""
     n = len(xyz)
     if n <= 2 * size or xyz.dtype not in (np.float32, np.float64):
