@@ -9,61 +9,34 @@
 - ``ransac`` — the paper's PCL segmentation: per XY tile a RANSAC plane with the robust
   eigenvalue fit; its inliers are ground. Tiles whose fit is poor are split in four and
   re-run (the paper re-tiled its blocks 15 and 24 by hand).
-- ``hybrid`` (default) — chosen by measurement (see benchmarks/bench_ground.py): a raster
-  progressive morphological filter (Pingel et al. 2013, SMRF) on the grid of lowest points,
-  with low blunders removed first; the ground cells' surface is in-painted, points within a
-  slope-dependent band of it are ground, and the surface is rebuilt from them until the
-  labels repeat (at most 8 rounds). The rebuild rounds give back the convex terrain the
-  opening cuts (ridge crests, terrace rims): ISPRS mean total error 4.47 % -> 4.27 %, kappa
-  0.852 -> 0.857 with one parameter set (3 rounds before). Where the ground surface after
-  the opening is steeper than 0.8 only the opening's first 6 m of window count (narrow
-  terraces, embankment tops and spurs are not buildings): 4.27 % -> 4.11 %, kappa 0.860.
-  A cell is an object only if it is one in a second opening too, of the surface minus its
-  24 m median trend: 4.07 % -> 3.86 %, kappa 0.861 -> 0.867 (HybridSettings.trend_window);
-  with every test below in place, the second opening's objects alone: 3.52 % -> 3.37 %,
-  kappa 0.880 -> 0.883.
-  Rejected points on the rim of a plateau of real ground points (a smooth, gentle half-disc
-  whose plane passes through the point, with a drop of more than 2 m beside it) join the
-  ground after the last round: 3.86 % -> 3.74 %, kappa 0.867 -> 0.872 (_rim_points).
-  Then rejected points on the face of a cliff (ground above and below them within 5 m,
-  rising faster than 2:1) join, and a second rim pass judges the points near what the
-  first and the face test gave back: 3.74 % -> 3.65 %, kappa 0.872 -> 0.877 (samp53
-  0.558 -> 0.631; _face_points, HybridSettings.rim_passes). Not on dense scans, where the
-  opening resolves the faces it can (AHN corridor 07CZ2_14 lost 0.0004 of kappa to it).
-  Last, on sparse scans, ground points more than 0.15 m above all ground of the other
-  cells within 5 m (single bush and hedge points the band let in) leave the ground, twice:
-  3.65 % -> 3.52 %, kappa 0.877 -> 0.880, Type II 9.19 -> 8.18 % (_peak_points).
-  On dense scans (AHN, >= 4 ground points per m^2) the flat-ground band narrows from 0.5 to
-  0.15 m: corridor tile 07CZ2_14 ground kappa 0.845 -> 0.902, 12AN2_20 0.968 -> 0.985, AHN4
-  0.910 -> 0.949, ISPRS unchanged (HybridSettings.dense_threshold).
-  On dense scans, pieces of ground raised more than 2 m above the ground beside them with
-  nothing higher around them (roofs a strip caught at its edge or beside their own shadow,
-  which no window of the opening could cut off) leave the ground after the rounds, and so
-  do pits of a few cells (stray low points): streamed urban flight, building points
-  labelled ground 16.9 % -> 0.8 % (_islands_and_pits).
-  Measured and rejected (ISPRS means): segments of object cells re-judged by the step along
-  their boundary (4.27-14.6 %: on steep ground terrace pieces step up all round too, and
-  canopy edges join the ground smoothly); de-trending the opening by the first surface
-  (Gaussian 3-25 m, median 31 m, the surface itself: 4.25-4.47 %, samp53 worse); a per-point
-  check against a 0.5 m surface of the accepted ground (4.16-4.26 %); a cell size from the
-  point density (1.5-3 m cells on the sparse samples 5x-7x: worse on 52, 53, 61). Keeping only
-  cells that are objects both in the plain and the de-trended (31 m median) opening scored
-  4.00 % but cost a second opening and a full-resolution median filter (about 2 x the time;
-  the trend is now medians of 8 x 8 blocks, and the opening 5-8 x cheaper); long, narrow
-  object components with gentle flanks taken for embankments (3.85-4.24 %, samp52 or 51
-  worse); points within the band of any of the 4 cells around them, for break-line edges
-  (4.31 %; only on ground steeper than 0.8-3: 3.83-3.87 %, samp41 up to +0.8 points, and it
-  would accept wall and tower-leg feet). It is O(N) and raster-only: ~40 x faster than TIN
-  densification before the speed-up below (TIN rebuilds a Delaunay per round) and more
-  accurate on the ISPRS samples with one parameter set.
-
-Speed (15 ISPRS samples, best of 3-5, same process): 0.44 M points/s before the raster
-work was rebuilt, 0.98 M points/s after with identical labels, 0.70 M points/s with the
-second (de-trended) opening; pysmrf in the same run 13-17 k points/s on the shared 2-core
-machine. What made the difference: scipy's grey_opening replaced by `_window_extreme`
-(exact, 5-8 x faster per filter), in-painting and opening work arrays reused per call
-(fresh grid-sized arrays cost ~1 us per 4 KB page in faults here), and no masked writes
-over scattered holes (a where= write costs 20-100 x a plain pass on sparse scans).
+- ``hybrid`` (default) — a raster progressive morphological filter (Pingel et al. 2013,
+  SMRF) on the grid of lowest points, with low blunders removed first; the ground cells'
+  surface is in-painted, points within a slope-dependent band of it are ground, and the
+  surface is rebuilt from them until the labels repeat (at most 8 rounds: the rebuilds give
+  back the convex terrain the opening cuts, ridge crests and terrace rims). Beyond SMRF
+  (the steps of `morphological_ground`, their constants in `HybridSettings`):
+  - on ground steeper than 0.8 only the opening's first 6 m of window count: narrow
+    terraces, embankment tops and spurs are not buildings;
+  - the object cells are those of a second opening, of the surface minus its 24 m median
+    trend: on a hillside terrace edges and spurs stand out of the plain opening, not of
+    the de-trended one, where a building stands out of both;
+  - after the last round, rejected points on the rim of a plateau of ground points (a
+    smooth, gentle half-disc whose plane passes through the point, a drop of more than
+    2 m beside it) join the ground, and on sparse scans so do points on the face of a
+    cliff (ground above and below them within 5 m, rising faster than 2:1), then the rims
+    near those once more;
+  - on sparse scans, ground points more than 0.15 m above all ground of the other cells
+    within 5 m (single bush and hedge points the band let in) leave the ground, twice;
+  - on dense scans (>= 4 ground points per m^2) the flat-ground band narrows from 0.5 to
+    0.15 m, and pieces of ground raised more than 2 m above the ground beside them with
+    nothing higher around them (roofs a strip caught at its edge or beside their own
+    shadow, which no window of the opening could cut off) leave the ground after the
+    rounds, as do pits of a few cells (stray low points).
+  It is O(N) and raster-only, many times faster than TIN densification (which rebuilds a
+  Delaunay per round) and more accurate on the ISPRS samples with one parameter set
+  (benchmarks/bench_ground.py). How each step and constant was chosen, what was measured
+  and rejected, and how the filter got its speed: docs/measurements.md, "Ground filter:
+  how the hybrid got here".
 
 Height above ground of every point comes from the ground surface, never from a sensor
 height: for `hybrid` the in-painted raster of the ground points, read bilinearly; for `tin`
@@ -91,12 +64,6 @@ HIGH_SEED_DROP = 5.0  # m: a seed this far above its neighbours is an object's l
 # vertex S is tiny and the angle meaningless (a ground point 0.3 m from an accepted one
 # and 0.12 m off the facet's plane is at 23 degrees), so real ground there never joined
 # (ISPRS samp22: 56 % of the ground left out failed the angles alone, with d < 1 m).
-# ISPRS mean total error / kappa with the box seeds and the plane seed test: 11.36 % / 0.700
-# (Type I 15.9 %) without a floor, 8.22 % / 0.762 (Type I 8.7 %, Type II 8.0 %) with 2 m;
-# all passing points of a facet at once instead of the closest: 1.5 / 2 / 3 m 8.22 / 7.75 /
-# 7.81 %, kappa 0.763 / 0.770 / 0.762 (3 m: Type II 15.5 %), but then a facet takes its
-# points before it is split and `tin.min_edge` no longer bounds the density; 15 degrees
-# instead of 20 (1.5 m, all at once) 9.94 %.
 ANGLE_MIN_REACH = 2.0  # m
 # Rounds of the raster filter's low-blunder test (morphological_ground), each without the
 # blunders found before: the simulator's echoes come in clusters of 2-3.
@@ -109,12 +76,8 @@ class HybridSettings:
 
     The first four are the `ground.*` parameters (their defaults the schema's); the rest
     are the method's constants, fields so that tests and docs/figures.py can turn a test
-    off (0) and show what it does.
-
-    Measured on the 15 ISPRS samples (mean total error, one set for all, 3 rounds): slope
-    0.15 / 0.25 / 0.3 -> 4.54 / 4.53 / 4.95 %; window 12 / 24 / 30 m -> 4.78 / 4.46 /
-    4.46 %; threshold 0.4 / 0.6 m and scalar 0.75 / 2.0 all worse or level; cell 1.5 m is
-    2.7 x faster at 4.48 %, cell 2 m 4.94 %, cell 0.5 m 6.13 %.
+    off (0) and show what it does. What each was measured against and the values tried:
+    docs/measurements.md, "Ground filter: how the hybrid got here".
     """
 
     cell: float = GroundConfig.cell  # m
@@ -127,51 +90,21 @@ class HybridSettings:
     low_window: int = 7  # cells, the neighbourhood of the low-blunder test
     # Where that window holds no other ground (see _lone_low_cells), a point more than
     # `low_outlier` plus `lone_slope` times the distance below the nearest ground within
-    # `lone_reach` is a blunder too: a noise echo beyond a strip's edge. Judged on the first
-    # labels' ground, in pieces of up to `lone_cells` (echoes of one strip a few metres
-    # apart). Simulated 10 s flights, the simulator's noise echoes taken for ground: mixed
-    # 57 -> 1, corridor 48 -> 0, urban 104 -> 7, forest 52 -> 2 (of 600-1000); the clusters
-    # of 2-3 low points added to every message (see pit_cells) 4.2 -> 1.9 % in ground
-    # (corridor), 10 -> 5.2 % (urban); ground kappa and Type I of those flights and of AHN
-    # whole unchanged, AHN4 streamed 0.922 -> 0.923; on ISPRS one point of 15 samples
-    # changes (sparse, but the window is rarely empty); ~0.4 ms a message, ~5 % of the ISPRS
-    # ground time. Each echo had sunk a bubble of the rolling DEM 20 m wide and 5-15 m deep
-    # (bench_rolling_dem.py): filled cells within 4 m of the data more than 1 m off the true
-    # terrain 40 / 31 / 45 / 22 % -> 0 / 0 / 7.5 / 0 %, the same as the DEM of the reference
-    # ground but on the urban flight. Measured (echoes in ground, the same four flights):
-    # lone_slope 0.5 / 0.3 / 0.2: 4 / 7 / 38 / 17, 2 / 0 / 15 / 9, 1 / 0 / 10 / 6 (the urban
-    # ones lie 15-30 m from any ground, which the slope lets fall too far); lone_reach 15 m:
-    # urban 31; one cell at a time, not pieces (0.3): 2 / 5 / 18 / 9. Judged after the label
-    # rounds: the same, but the surface rebuilt once more, +4 ms a message. Judged on every
-    # cell's lowest point before any labels: a street seen alone between roofs has only
-    # roofs nearest (urban building points in ground 0.78 -> 0.92 %). A lone real ground
-    # point on terrain falling faster than lone_slope beyond a strip's edge is lost: one
-    # point, where a kept echo sinks the DEM around it. lone_slope 0.1 -> 0.05
-    # (echoes at a strip's corner 3.6-3.7 m below ground 15-20 m off stayed), with the
-    # blunder test run again without the blunders it found (LOW_ROUNDS: a deep echo
-    # shielded a shallower one beside it): the urban flights' echoes in ground 5 / 7 / 1
-    # -> 0 / 0 / 0 (seeds 0-2); the urban rolling DEM's filled cells within 4 m of the data
-    # more than 1 m off 7.5 -> 0 %, RMSE within 2 m 0.83 -> 0.02 m (reference ground
-    # 0.016 m); ISPRS the same but samp31 2.71 -> 2.68 % (the rounds).
+    # `lone_reach` is a blunder too: a noise echo beyond a strip's edge, which sank a bubble
+    # of the rolling DEM 20 m wide and 5-15 m deep. Judged on the first labels' ground (on
+    # every cell's lowest point, a street seen alone between roofs has only roofs nearest),
+    # in pieces of up to `lone_cells` (echoes of one strip a few metres apart). A lone real
+    # ground point on terrain falling faster than lone_slope beyond a strip's edge is lost:
+    # one point, where a kept echo sinks the DEM around it.
     lone_reach: float = 30.0  # m, how far the cells judging a lone one are sought; 0: off
     lone_slope: float = 0.05  # rise over run the ground may fall towards a lone cell
     lone_cells: int = 4  # cells of a piece judged as lone at most
     # Where the ground surface after the opening is steeper than `steep_slope`, only the
     # flags of the opening steps up to `steep_window` count (the same run, no extra
-    # opening): large windows cut narrow terraces, embankments and spurs there. ISPRS mean
-    # total error 4.27 -> 4.11 %, kappa 0.857 -> 0.860 (samp24 5.66 -> 4.19 %, samp41
-    # 5.96 -> 5.36 %, samp23 6.69 -> 6.45 %; no sample worse by more than 0.06 points).
-    # Window 3 / 5 / 8 / 10 m: 4.29 / 4.15 / 4.12 / 4.18 %; slope 0.5 / 0.6 / 1.0:
-    # 4.20 / 4.13 / 4.11 %; the slope smoothed (Gaussian 5 m) first: 4.25 %.
+    # opening): large windows cut narrow terraces, embankments and spurs there.
     steep_window: float = 6.0  # m
     steep_slope: float = 0.8  # rise over run of the ground surface
     # Label / rebuild-surface rounds, at most; they stop early once the labels repeat.
-    # ISPRS mean total error / kappa: 3 rounds 4.47 % / 0.852, 8 rounds 4.27 % / 0.857,
-    # 12 rounds no further gain; with the de-trended opening 5 / 6 / 7 / 8 rounds 3.89 /
-    # 3.88 / 3.88 / 3.87 %. Also measured with it and rejected: the band's slope capped at
-    # 0.5 / 0.75 / 1.5 instead of 1: 4.18 / 4.11 / 4.05 % (samp41 +0.33); 2 / 8 / 16
-    # in-painting smoothing rounds instead of 4: 4.09 / 4.07 / 4.08 %; the band's slope taken
-    # again from each rebuilt surface: 4.11-4.12 % (all before the trend, baseline 4.07 %).
     passes: int = 8
     # Dense scans (AHN: 10-60 points per m^2): the lowest ground point of a 1 m cell lies
     # within the noise of the ground, so the band above it need not cover interpolation
@@ -179,12 +112,7 @@ class HybridSettings:
     # fall outside it. The flat-ground threshold narrows from `threshold` to
     # `dense_threshold` as the ground points of the first labels, per m^2 over the 3 x 3
     # cells around a point, go from `dense_from` to `dense_full`. ISPRS (about 1 ground
-    # point per m^2, locally up to 7 in Stuttgart) keeps its labels. Ground kappa
-    # 07CZ2_14 / 12AN2_20 / AHN4: 0.845 / 0.968 / 0.910 -> 0.902 / 0.985 / 0.949.
-    # dense_threshold 0.12 / 0.14 / 0.16 / 0.18 m: 07CZ2_14 0.879 / 0.899 / 0.901 / 0.894
-    # (12AN2_20 0.984-0.986, AHN4 0.944-0.954);
-    # from / full 6 / 12: 0.900 / 0.986 / 0.948; 2 / 6: 0.903 / 0.985 / 0.951 (ISPRS level);
-    # 1 / 4: ISPRS 4.07 -> 4.08 %.
+    # point per m^2) keeps its labels.
     dense_threshold: float = 0.15  # m
     dense_from: float = 4.0  # ground points per m^2
     dense_full: float = 10.0  # ground points per m^2
@@ -194,47 +122,16 @@ class HybridSettings:
     # `trend_block` cells, bilinear back to the cells. On a hillside the plain opening
     # takes terrace edges and spurs for objects, the de-trended one does not; a building
     # stands out in both. The first opening only finds the surface the trend is taken
-    # from (and, with the second, the steep-window flags, `_steep_objects`).
-    # Introduced as a veto (objects of both openings): ISPRS mean total error 4.07 ->
-    # 3.86 %, kappa 0.861 -> 0.867 (samp23 7.05 -> 4.96 %, samp52 3.85 -> 3.41 %, samp53
-    # 7.12 -> 6.66 %; worst samp12 3.19 -> 3.26 %). Later, with the other tests in
-    # place, the second opening alone: 3.52 -> 3.37 %, kappa 0.880 -> 0.883, 6 x 6 blocks
-    # with kappa > 0.8 83.3 -> 84.7 %, Type I 1.88 -> 2.13 %, Type II 8.17 -> 7.11 %
-    # (samp31 2.68 -> 1.78 %, samp51 3.00 -> 2.30 %, samp54 3.22 -> 2.73 %; worst samp24
-    # 4.27 -> 4.36 %, samp23 4.69 -> 4.87 %): the plain opening vetoed low objects where
-    # the trend bends. AHN and corridor tiles (flat) unchanged. Both flag sets for the
-    # steep windows as well: 3.71 %. Measured (second opening alone): trend 16 / 32 / 40 m
-    # 3.63 / 3.34 / 3.34 % (blocks 83.8 / 84.2 / 84.2 %); slope 0.18 / 0.22 3.40 / 3.62 %;
-    # window 16 / 20 m 3.45 / 3.37 %. Before: trend 24 / 31 / 40 / 56 m on 8-cell blocks
-    # 3.86 / 3.87 / 3.88 / 3.93 %; 21 / 28 / 31 / 36 / 45 / 61 m on 4-cell blocks 3.90 /
-    # 3.89 / 3.87 / 3.88 / 3.88 / 3.96 %; the trend of the lowest points instead of the
-    # ground surface (buildings raise it): 4.95-5.23 %; de-trending by the surface itself:
-    # 3.99 %. The second opening and the trend cost ~30 % of the points per second
-    # (0.98 -> 0.70 M/s).
+    # from (and, with the second, the steep-window flags, `_steep_objects`). The trend is
+    # of the ground surface, not of the lowest points, which buildings raise.
     trend_window: float = 24.0  # m; 0: no second opening
     trend_block: int = 8  # cells
     # Rims of terrace steps and cliffs (see _rim_points): after the last round, a rejected
     # point joins the ground when the real ground points in a half-disc beside it form a
     # smooth, gentle, two-dimensional plateau whose plane passes through it, and ground
-    # lies more than `rim_drop` below it within `rim_window` (the step). One pass, no
-    # rebuild. ISPRS mean total error 3.86 -> 3.74 %, kappa 0.867 -> 0.872 (samp53
-    # 6.66 -> 5.02 %, samp52 3.41 -> 3.00 %; worst samp71 +0.15, samp51 +0.14 points); AHN
-    # ground kappa unchanged; ~12 % of the filter's CPU time (only the lowest point of a
-    # cell judged, float32 sums, an unbalanced kd-tree).
-    # Measured (mean total error): rim_drop 1 / 3 m 3.74 / 3.74 %; rim_window 4 / 8 m
-    # 3.86 / 3.72 % (8 m not checked on AHN); rim_max_slope 0.7 3.75 %; rim_neighbours 12
-    # 3.75 %; rim_below 0.5 m 3.74 %. On the points after the filter, before the raster
-    # pre-selection (8 half-discs, all rejected points judged, 2.4 x the filter's time):
-    # the drop taken from the opposite half-disc's points 3.77-3.79 %, none 3.78 %;
-    # rim_max_rms 0.15 m, rim_band 0.3 m: fewer rims (samp53 -0.7 to -0.9 points instead of
-    # -1.3); rim_spread 1.5 m: almost none; 4 half-discs 3.82 %; 24 neighbours: samp21 and
-    # samp42 worse. The raster pre-selection (ground at the point's level and > rim_drop
-    # below it within the window) both scores better and leaves ~12 % of the candidates.
-    # A second pass 3.71 % / 0.873, a surface rebuild and band test after the pass 3.72 % /
-    # 0.873, both 3.69 % / 0.874 (samp71 +0.24, samp51 +0.21 points), each +10-15 % CPU
-    # on top of the test's ~10 %: over the budget. samp61's embankment is no rim (its
-    # flanks are as steep as walls at 2.4 m spacing, its top rough by +-1 m): -0.09 points.
-    rim_window: float = 6.0  # m; 0: no rim test
+    # lies more than `rim_drop` below it within `rim_window` (the step). No surface
+    # rebuild between passes (each rebuild and band test cost more than the test itself).
+    rim_window: float = 6.0  # m; 0: no rim test (and no peak test)
     rim_drop: float = 2.0  # m
     rim_band: float = 0.5  # m, above the plateau's plane
     rim_below: float = 1.5  # m, below it (rounded convex edges)
@@ -245,23 +142,14 @@ class HybridSettings:
     rim_spread: float = 1.0  # m
     rim_near: float = 4.0  # m
     # Rim passes: the second judges only the rejected points near what the first pass and
-    # the face test (below) gave back, whose rims the new ground can now carry. ISPRS mean
-    # kappa / total error with the face test: 1 pass 0.8756 / 3.68 %, 2 passes 0.8771 /
-    # 3.65 % (all points judged again: 0.8774 / 3.64 % at 1.8 x the pass's time), a third
-    # pass and face test 0.8779 / 3.64 %.
+    # the face test (below) gave back, whose rims the new ground can now carry.
     rim_passes: int = 2
     # Faces of cliffs and terrace walls (see _face_points), after each rim pass but the
     # last: a rejected point with ground more than `face_rise` above and below it among
     # its `face_neighbours` nearest ground points within `face_radius`, an upper and a
     # lower one of them rising faster than `face_steep` (rise over run) from one to the
-    # other. ISPRS mean kappa 0.8722 -> 0.8756 after one rim pass (samp53 0.558 -> 0.611;
-    # samp24 -0.004, samp11 +0.001: bushes on steep banks). Measured with two rim passes
-    # (kappa): face_radius 4 / 5 / 6 m 0.8763 / 0.8774 / 0.8777; face_steep 1.5 / 2 / 3
-    # 0.8774 / 0.8774 / 0.8766; face_rise 0.5 / 1 / 2 m 0.8773 / 0.8774 / 0.8766;
-    # face_neighbours 16 0.8770; only the lowest point of a cell judged 0.8769; the test
-    # on the ground before the rims (same pass) 0.8745, before the rim pass 0.8741; the
-    # segment between the upper and the lower point within 0.5-1 m of the point (instead
-    # of the steepness) 0.8724-0.8728: cliff faces are not straight at 2.4 m spacing.
+    # other. The steepness, not a straight segment through the point: cliff faces are not
+    # straight at 2.4 m spacing.
     face_radius: float = 5.0  # m; 0: no face test
     face_rise: float = 1.0  # m
     face_steep: float = 2.0  # rise over run between the upper and the lower ground point
@@ -269,16 +157,7 @@ class HybridSettings:
     # Peaks (see _peak_points), after the rims and faces, on sparse scans only: a ground
     # point more than `peak_rise` above every ground point of the other cells within
     # `peak_window` (a square) leaves the ground, `peak_passes` times (the second pass
-    # takes what the first uncovered: two-point bushes). ISPRS mean kappa 0.8771 -> 0.8801,
-    # total error 3.65 -> 3.52 %, blocks with kappa > 0.8 82.1 -> 83.3 % (Type II 9.19 ->
-    # 8.18 %: samp51 0.896 -> 0.908, samp54 0.915 -> 0.935, samp52 0.844 -> 0.853,
-    # samp71 0.896 -> 0.902; samp53 0.631 -> 0.618, samp61 0.777 -> 0.769: rough ground
-    # at 2.4 m spacing); ~2 % of the filter's CPU; AHN unchanged (dense). Measured (kappa):
-    # peak_rise 0.1 / 0.2 / 0.25 m 0.8790 / 0.8795 / 0.8796; peak_window 4 / 6 m 0.8787 /
-    # 0.8797; 1 / 3 passes 0.8794 / 0.8797. With it, the band's slope capped at 2 instead
-    # of 1 on sparse scans: 0.8808 / 3.50 %, but the band then takes most cliff faces
-    # itself (test_ground_faces) and the corridor tile 07CZ2_14 lost 0.0005 when the cap
-    # followed the density ramp: not taken.
+    # takes what the first uncovered: two-point bushes).
     peak_window: float = 5.0  # m; 0: no peak test
     peak_rise: float = 0.15  # m
     peak_passes: int = 2
@@ -286,26 +165,14 @@ class HybridSettings:
     # piece of ground with ground of other pieces more than `island_rise` lower beside it
     # and none more than that higher is a roof the opening could not cut off (its own
     # higher cells do not count: a roof pitched at 40 degrees or more rises 2 m within the
-    # reach; simulated urban flights of 10 s, seeds 0-2, building points more than 1 m up
-    # labelled ground 882 / 3 222 / 3 698 -> 355 / 866 / 237 with the walls below, next).
-    # The walls under an island's edges, in the band of the surface across the roof, leave
-    # with it when the surface without it puts them outside the band. A UAV strip often catches
-    # a roof at its edge, or beside the building's own shadow, so that no window of the
-    # opening holds ground on every side, and the rounds then spread the roof's ground
-    # across it. Streamed 10 s flights (building points labelled ground, ground kappa):
-    # urban seed 1 16.9 -> 0.8 %, 0.881 -> 0.994; seed 0 8.3 -> 1.7 %, 0.980 -> 0.995;
-    # forest 2.9 -> 0.4 %; mixed and corridor unchanged; the AHN4 tile streamed as strips
-    # kappa 0.853 -> 0.922, building recall 0.67 -> 0.76; whole AHN files and ISPRS
-    # unchanged. Measured: island_rise 1.5 / 2.5 m the same, 3.5 m AHN4 0.892;
-    # island_connect 0.5 / 1.5 / 2 m AHN4 0.920 / 0.919 / 0.919; island_reach 2 / 5 m the
-    # same; island_extent 30 m AHN4 0.853 (its roofs are larger), 36-1000 m the same. Stray
-    # low points the blunder test missed (two that shield each other) are lower ground too:
-    # counted, they made the whole strip an island (corridor flight ground kappa 0.458,
-    # urban 0.743), hence `island_min_cells` and `island_pit_share`; with 5 clusters of 2-3
-    # points 3-6 m deep added to every message, Type I stays 0.27 % (corridor) and 0.48 %
-    # (urban, 0.49 % without the test). Lower pieces of 3 cells or more only: AHN4 0.895.
-    # On sparse scans (ISPRS: most 1 m cells empty, ground pieces not connected) ISPRS
-    # mean total error 3.52 -> 4.82 %: not there.
+    # reach). The walls under an island's edges, in the band of the surface across the
+    # roof, leave with it when the surface without it puts them outside the band. A UAV
+    # strip often catches a roof at its edge, or beside the building's own shadow, so that
+    # no window of the opening holds ground on every side, and the rounds then spread the
+    # roof's ground across it. Stray low points the blunder test missed (two that shield
+    # each other) are lower ground too: counted, they made the whole strip an island, hence
+    # `island_min_cells` and `island_pit_share`. Not on sparse scans (ISPRS: most 1 m cells
+    # empty, ground pieces not connected; its total error 3.52 -> 4.82 %).
     island_rise: float = 2.0  # m; 0: no island test
     island_connect: float = 1.0  # m, the largest step between neighbouring cells of a piece
     island_reach: float = 3.0  # m, how far beside a piece lower or higher ground is sought
@@ -313,15 +180,11 @@ class HybridSettings:
     island_pit_share: float = 0.8  # of a window higher ground around a pit
     island_min_cells: int = 2  # the smallest piece of lower ground that counts
     # Pits of up to `pit_cells` cells leave the ground too (their points within
-    # island_rise of the pit's floor): with the clusters above added, the share of their
-    # points taken for ground 22.1 -> 3.4 % (corridor), 25.6 -> 10.0 % (urban), Type I
-    # 0.27 -> 0.21 %, 0.48 -> 0.43 %; the flights as simulated, AHN whole and streamed
-    # unchanged.
+    # island_rise of the pit's floor).
     pit_cells: int = 4
     # Where the raster's cells fall: its corner lies `anchor` (x, y) cells, 0 to 1, before
     # the lowest x and y of the points. Not a setting: a measure of how much the labels
-    # owe to the grid's placement (benchmarks/bench_ground.py, "grid placements"). ISPRS
-    # mean kappa over 6 placements 0.873-0.883.
+    # owe to the grid's placement (benchmarks/bench_ground.py, "grid placements").
     anchor: tuple[float, float] = (0.0, 0.0)
 
 
@@ -403,10 +266,9 @@ def _locate(tri: Delaunay, xy: np.ndarray, max_steps: int = 64) -> np.ndarray:
     A walk for all points at once: from a facet of the point's nearest vertex, step to the
     neighbour across the edge the point lies beyond, until the point is inside (most take
     0-2 steps). Not Qhull's own walk: on a dense TIN it often fails on slivers and falls
-    back to trying every facet, so locating the points took 94 of 103 s of a 20 000-point
-    slope (one round 9.8 s; this ~30 ms on an ISPRS sample). A point on an edge gets the
-    facet its walk meets first; a point still walking after `max_steps` is left to
-    Qhull."""
+    back to trying every facet (most of the time of a 20 000-point slope). A point on an
+    edge gets the facet its walk meets first; a point still walking after `max_steps` is
+    left to Qhull."""
     out = np.full(len(xy), -1, np.int64)
     if len(xy) == 0 or len(tri.simplices) == 0:
         return out
@@ -447,11 +309,9 @@ def tin_densification(xyz: np.ndarray, cfg: TinConfig, *, fixed: np.ndarray | No
     plane of each facet, join the ground (a batch per round), and the TIN is rebuilt,
     until no point joins or `cfg.max_iterations` rounds. Made better: virtual seeds round the box
     (`_box_seeds`), odd seeds judged against their neighbours' plane (`_drop_odd_seeds`,
-    with drop_odd_seeds) and the vertex angles judged from ANGLE_MIN_REACH at least.
-    ISPRS mean total error / kappa 15.84 % / 0.607 -> 8.20 % / 0.763 (Type I 22.9 -> 8.7 %,
-    Type II 4.1 -> 8.0 %); a 17 degree slope 13 -> 96 % ground. ~4 s per ISPRS sample
-    (the 15 in 58 s; samp11 11 -> 7.7 s of CPU), most of it Qhull's triangulation, one a
-    round.
+    with drop_odd_seeds) and the vertex angles judged from ANGLE_MIN_REACH at least (the
+    figures: docs/measurements.md, "Ground filter: how the hybrid got here"). Most of its
+    time is Qhull's triangulation, one a round.
 
     fixed: (F, 3) extra ground points (the streaming context), part of the TIN, not output.
     """
@@ -522,10 +382,10 @@ class _Inpainter:
     4 KB page on the 2-core test machine) as ten passes of arithmetic over it, and the
     hybrid filter in-paints the same grid shape up to 12 times per cloud.
 
-    The pyramid is float32: its passes are memory-bound, and half the bytes took the
-    hybrid filter's CPU on the 15 ISPRS samples from 0.69 to 0.60 s with the same labels
-    (also on the AHN tiles). The known cells come back exact; a filled cell is good to
-    ~1e-7 of the grid's values (the filter's are centred: micrometres).
+    The pyramid is float32: its passes are memory-bound, and half the bytes cost the
+    hybrid filter ~13 % less CPU with the same labels. The known cells come back exact; a
+    filled cell is good to ~1e-7 of the grid's values (the filter's are centred:
+    micrometres).
     """
 
     def __init__(self, shape: tuple[int, int]) -> None:
@@ -687,25 +547,16 @@ class _Opening:
     """Progressive morphological opening of (rows, cols) grids of one shape, work arrays kept.
 
     Square windows, not SMRF's disks. A square fits a diagonal strip only up to 0.35 of its
-    width (a disk up to 0.5), so it cuts diagonal embankments that a disk leaves: measured
-    with disks (scipy footprints, every other setting as here) ISPRS samp61 kappa 0.769 ->
-    0.839, but the mean total error 3.52 -> 4.30 % and kappa 0.880 -> 0.865 (samp31 0.945
-    -> 0.850, samp21 0.956 -> 0.917: low objects flagged later, when slope x radius is
-    higher); with disks and slope 0.15 3.57 % / 0.8791, with octagons and slope 0.15
-    3.48 % / 0.8798 (blocks 84.2 %), samp61 back to 0.777 / 0.756. Not taken: 10 x slower
-    with scipy's footprints and no clear gain. Also measured: a cell is an object only if
-    squares and squares turned 45 degrees (of the same half-width) both flag it, so that a
-    strip of any direction fits one of them: samp61 0.769 -> 0.807, samp23 0.906 -> 0.924,
-    but samp31 0.945 -> 0.918, samp51 0.908 -> 0.884; mean 3.69-3.75 % / 0.877-0.879,
-    blocks 80.9-81.4 % (in the plain opening, the de-trended one, or both).
+    width (a disk up to 0.5), so it cuts diagonal embankments that a disk leaves; but disks
+    flag low objects later (when slope x radius is higher), scored worse on ISPRS as a
+    whole, and are 10 x slower with scipy's footprints (docs/measurements.md, "Ground
+    filter: how the hybrid got here").
 
-    The opening itself runs in float32 (its passes are memory-bound, as the in-painting's):
-    the hybrid filter 7-10 % faster on the 15 ISPRS samples (0.45 -> 0.48 M points/s,
-    medians of 8 interleaved runs), and of the 18 real files' 1.84 M points 7 labels
-    change, on samp22 and samp41: steps equal to the threshold to the centimetre, which
-    rounding decides either way (mean total error and kappa the same to 0.001 %). The
-    values are centred micrometres, so a cloud moved by whole metres still rounds the
-    same. `work`, `scratch` and `eroded` (float64) serve the rim, peak and island windows.
+    The opening itself runs in float32 (its passes are memory-bound, as the in-painting's:
+    7-10 % faster). Steps equal to the threshold to the centimetre may round either way
+    (7 labels of the real files' 1.84 M points changed with it). The values are centred
+    micrometres, so a cloud moved by whole metres still rounds the same. `work`, `scratch`
+    and `eroded` (float64) serve the rim, peak and island windows.
     """
 
     def __init__(self, shape: tuple[int, int], max_radius: int) -> None:
@@ -910,6 +761,55 @@ def _steep_objects(objects: np.ndarray, near: np.ndarray, slope: np.ndarray,
     return objects if np.array_equal(mixed, objects) else mixed
 
 
+def _half_disc_sums(rel: np.ndarray, valid: np.ndarray, directions: int
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """((M, D, K) float32 1 where neighbour K lies in the half-disc ahead of point M in
+    direction D, 0 elsewhere; (M, D, 10) float64 sums over each half-disc of 1, x, y, z, xx,
+    xy, yy, xz, yz, zz) of the K neighbours (M, K, 3) float32 m `rel` of M points, relative
+    to each point, where (M, K) bool `valid`; D = `directions` half-discs, evenly turned."""
+    x, y, zz = rel[..., 0], rel[..., 1], rel[..., 2]
+    ang = np.arange(directions) * (2 * np.pi / directions)
+    proj = np.multiply.outer(np.cos(ang).astype(np.float32), x)
+    proj += np.multiply.outer(np.sin(ang).astype(np.float32), y)
+    w = ((proj > 0) & valid).astype(np.float32).transpose(1, 0, 2)
+    feats = np.empty(x.shape + (10,), np.float32)
+    feats[..., 0] = 1.0
+    feats[..., 1], feats[..., 2], feats[..., 3] = x, y, zz
+    np.multiply(x, x, out=feats[..., 4])
+    np.multiply(x, y, out=feats[..., 5])
+    np.multiply(y, y, out=feats[..., 6])
+    np.multiply(x, zz, out=feats[..., 7])
+    np.multiply(y, zz, out=feats[..., 8])
+    np.multiply(zz, zz, out=feats[..., 9])
+    return w, np.matmul(w, feats).astype(np.float64)
+
+
+def _half_disc_planes(sums: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The least-squares planes z = a + bx x + by y of the half-discs whose (M, D, 10)
+    `sums` `_half_disc_sums` gives, each (M, D): (bool ok: 4 points or more, not all on a
+    line; a, the plane's height at the point, m; bx, by, its slopes; its residual
+    variance, m^2; the smaller eigenvalue of the covariance of the points' x and y, m^2).
+    Centred: a is found at the half-disc's centroid, then moved to the point (x = y = 0)."""
+    n, sx, sy, sz, sxx, sxy, syy, sxz, syz, szz = np.moveaxis(sums, -1, 0)
+    nz = np.maximum(n, 1.0)
+    mx, my, mz = sx / nz, sy / nz, sz / nz
+    cxx = sxx / nz - mx * mx
+    cyy = syy / nz - my * my
+    cxy = sxy / nz - mx * my
+    cxz = sxz / nz - mx * mz
+    cyz = syz / nz - my * mz
+    czz = szz / nz - mz * mz
+    det = cxx * cyy - cxy * cxy
+    ok = (n >= 4) & (det > 1e-9)
+    det = np.where(ok, det, 1.0)
+    bx = (cxz * cyy - cyz * cxy) / det
+    by = (cyz * cxx - cxz * cxy) / det
+    a = mz - bx * mx - by * my
+    rms2 = czz - bx * cxz - by * cyz  # residual variance of the fit
+    lam = (cxx + cyy) / 2 - np.sqrt(((cxx - cyy) / 2) ** 2 + cxy ** 2)
+    return ok, a, bx, by, rms2, lam
+
+
 def _rim_points(xyz: np.ndarray, flat: np.ndarray, windows: "_GroundWindows",
                 candidates: np.ndarray, ground_idx: np.ndarray,
                 cfg: HybridSettings) -> np.ndarray:
@@ -920,7 +820,8 @@ def _rim_points(xyz: np.ndarray, flat: np.ndarray, windows: "_GroundWindows",
     > `rim_spread`, so not a contour line of a hillside) and reaching within `rim_near` of
     the point. Only points with ground at their own level within `rim_window` and ground
     more than `rim_drop` below them there (the cliff, on the raster of ground cells) are
-    judged, against their `rim_neighbours` nearest ground points within `rim_window`, in
+    judged (a pre-selection that both scores better and leaves ~12 % of the candidates),
+    against their `rim_neighbours` nearest ground points within `rim_window`, in
     `rim_directions` half-discs.
 
     xyz: (N + F, 3) m, points and context; flat: (N + F,) their flat cells; windows: the
@@ -948,41 +849,8 @@ def _rim_points(xyz: np.ndarray, flat: np.ndarray, windows: "_GroundWindows",
     rel = gp[nn]
     rel -= C[:, None, :]
     rel = rel.astype(np.float32)  # metres from the point: float32 is exact enough, 2 x faster
-    x, y, zz = rel[..., 0], rel[..., 1], rel[..., 2]
-    ang = np.arange(cfg.rim_directions) * (2 * np.pi / cfg.rim_directions)
-    # (M, D, K) 1 where neighbour K lies in the half-disc ahead of the point in direction D.
-    proj = np.multiply.outer(np.cos(ang).astype(np.float32), x)
-    proj += np.multiply.outer(np.sin(ang).astype(np.float32), y)
-    w = ((proj > 0) & valid).astype(np.float32).transpose(1, 0, 2)
-    feats = np.empty(x.shape + (10,), np.float32)
-    feats[..., 0] = 1.0
-    feats[..., 1], feats[..., 2], feats[..., 3] = x, y, zz
-    np.multiply(x, x, out=feats[..., 4])
-    np.multiply(x, y, out=feats[..., 5])
-    np.multiply(y, y, out=feats[..., 6])
-    np.multiply(x, zz, out=feats[..., 7])
-    np.multiply(y, zz, out=feats[..., 8])
-    np.multiply(zz, zz, out=feats[..., 9])
-    S = np.matmul(w, feats).astype(np.float64)  # (M, D, 10) sums over each half-disc
-    n, sx, sy, sz, sxx, sxy, syy, sxz, syz, szz = np.moveaxis(S, -1, 0)
-    # Plane z = a + bx x + by y by least squares, centred: a at the wedge's centroid, then
-    # moved to the point (x = y = 0).
-    nz = np.maximum(n, 1.0)
-    mx, my, mz = sx / nz, sy / nz, sz / nz
-    cxx = sxx / nz - mx * mx
-    cyy = syy / nz - my * my
-    cxy = sxy / nz - mx * my
-    cxz = sxz / nz - mx * mz
-    cyz = syz / nz - my * mz
-    czz = szz / nz - mz * mz
-    det = cxx * cyy - cxy * cxy
-    ok = (n >= 4) & (det > 1e-9)
-    det = np.where(ok, det, 1.0)
-    bx = (cxz * cyy - cyz * cxy) / det
-    by = (cyz * cxx - cxz * cxy) / det
-    a = mz - bx * mx - by * my
-    rms2 = czz - bx * cxz - by * cyz  # residual variance of the fit
-    lam = (cxx + cyy) / 2 - np.sqrt(((cxx - cyy) / 2) ** 2 + cxy ** 2)
+    w, sums = _half_disc_sums(rel, valid, cfg.rim_directions)
+    ok, a, bx, by, rms2, lam = _half_disc_planes(sums)
     # The nearest neighbour in the wedge (the queries come sorted by distance).
     first = np.argmax(w > 0, axis=2)
     dmin = np.take_along_axis(np.broadcast_to(d[:, None, :], w.shape), first[..., None], 2)[..., 0]
@@ -1157,7 +1025,6 @@ def _lone_low_cells(grid: np.ndarray, occupied: np.ndarray, reach: int, cfg: Hyb
     out as well as lower), alone: taken for ground, it sank the surface under the strip's
     edge and a bubble of the rolling DEM 20 m wide and 5-15 m deep around it."""
     from scipy import ndimage
-    from scipy.spatial import cKDTree
 
     # Pieces of cells at most `reach` cells apart: squares of radius r round two cells
     # touch when the cells are at most 2 r + 1 apart
@@ -1188,6 +1055,77 @@ def _lone_low_cells(grid: np.ndarray, occupied: np.ndarray, reach: int, cfg: Hyb
     return out
 
 
+def _ground_pieces(grid: np.ndarray, index: np.ndarray, connect: float) -> tuple[int, np.ndarray]:
+    """(the number of pieces, (C,) the piece of each of the C occupied cells) of (rows, cols)
+    `grid`, the lowest ground point per cell (m, +inf where none): cells joined through
+    their 8 neighbours where their heights differ by at most `connect` m. index: (rows,
+    cols) the number of each occupied cell, row by row, -1 where empty."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rows, cols = grid.shape
+    n = int(np.count_nonzero(index >= 0))
+    links = []
+    with np.errstate(invalid="ignore"):  # inf - inf between empty cells: no link
+        for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+            c0, c1 = max(0, -dc), cols - max(0, dc)
+            a, b = grid[: rows - dr, c0:c1], grid[dr:, c0 + dc:c1 + dc]
+            joined = np.abs(a - b) <= connect
+            links.append((index[: rows - dr, c0:c1][joined],
+                          index[dr:, c0 + dc:c1 + dc][joined]))
+    first = np.concatenate([a for a, _ in links])
+    second = np.concatenate([b for _, b in links])
+    graph = coo_matrix((np.ones(len(first), np.int8), (first, second)), shape=(n, n))
+    count, piece = connected_components(graph, directed=False)
+    return count, piece
+
+
+def _higher_ground_around(grid: np.ndarray, index: np.ndarray, piece: np.ndarray,
+                          sunk: np.ndarray, own: np.ndarray, reach: int, cfg: HybridSettings
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """For K cells `sunk` (flat indices into (rows, cols) `grid`, the lowest ground point
+    per cell, m, +inf where none) of pieces `own` (K,): ((K,) bool ground of another piece
+    more than `island_rise` higher within `reach` cells, (K,) bool a pit: such higher
+    ground, of any piece, in `island_pit_share` or more of the other cells of the window
+    inside the grid). index: (rows, cols) occupied cells' numbers, -1 where empty; piece:
+    (C,) the piece of each occupied cell."""
+    rows, cols = grid.shape
+    r, q = np.divmod(sunk, cols)
+    dr, dq = np.mgrid[-reach:reach + 1, -reach:reach + 1]
+    rr, qq = r[:, None] + dr.ravel(), q[:, None] + dq.ravel()
+    inside = (rr >= 0) & (rr < rows) & (qq >= 0) & (qq < cols)
+    rr, qq = rr.clip(0, rows - 1), qq.clip(0, cols - 1)
+    window = np.where(inside, grid[rr, qq], np.inf)
+    with np.errstate(invalid="ignore"):
+        higher = (window > grid.ravel()[sunk, None] + cfg.island_rise) & np.isfinite(window)
+    # Higher ground of another piece: a pitched roof rising 2 m within the reach has
+    # its own ridge above its eaves (simulated urban flight, seed 2: 2 565 points of a
+    # roof 10-13 m up taken for ground in one message)
+    other = (higher & (piece[index[rr, qq]] != own[:, None])).any(axis=1)
+    pit = higher.sum(axis=1) >= cfg.island_pit_share * (inside.sum(axis=1) - 1)
+    return other, pit
+
+
+def _piece_extents(island: np.ndarray, piece: np.ndarray, occupied: np.ndarray,
+                   cell: float) -> np.ndarray:
+    """(P,) m, the extent (rows or columns, the wider) of each of the P pieces flagged in
+    (P,) bool `island`; meaningless for the others. piece: (C,) the piece of each of the
+    (rows, cols) bool `occupied` cells, row by row. Only the flagged pieces' cells are
+    read (few)."""
+    rows, cols = occupied.shape
+    count = len(island)
+    cells = np.flatnonzero(island[piece])
+    row, col = np.divmod(np.flatnonzero(occupied.ravel())[cells], cols)
+    lo_r, hi_r = np.full(count, rows), np.full(count, -1)
+    lo_c, hi_c = np.full(count, cols), np.full(count, -1)
+    which = piece[cells]
+    np.minimum.at(lo_r, which, row)
+    np.maximum.at(hi_r, which, row)
+    np.minimum.at(lo_c, which, col)
+    np.maximum.at(hi_c, which, col)
+    return (np.maximum(hi_r - lo_r, hi_c - lo_c) + 1) * cell
+
+
 def _islands_and_pits(grid: np.ndarray, cfg: HybridSettings, opening: _Opening
                       ) -> tuple[np.ndarray, np.ndarray]:
     """((rows, cols) bool cells of raised islands of ground, the same of pits) in
@@ -1207,9 +1145,6 @@ def _islands_and_pits(grid: np.ndarray, cfg: HybridSettings, opening: _Opening
     `pit_cells` cells are returned.
     `opening`: its work arrays are reused (the opening is done).
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     c = cfg.cell
     occupied = np.isfinite(grid)
     n = int(occupied.sum())
@@ -1218,19 +1153,7 @@ def _islands_and_pits(grid: np.ndarray, cfg: HybridSettings, opening: _Opening
         return out, pits
     index = np.full(grid.shape, -1, np.int64)
     index[occupied] = np.arange(n)
-    rows, cols = grid.shape
-    links = []
-    with np.errstate(invalid="ignore"):  # inf - inf between empty cells: no link
-        for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
-            c0, c1 = max(0, -dc), cols - max(0, dc)
-            a, b = grid[: rows - dr, c0:c1], grid[dr:, c0 + dc:c1 + dc]
-            joined = np.abs(a - b) <= cfg.island_connect
-            links.append((index[: rows - dr, c0:c1][joined],
-                          index[dr:, c0 + dc:c1 + dc][joined]))
-    first = np.concatenate([a for a, _ in links])
-    second = np.concatenate([b for _, b in links])
-    graph = coo_matrix((np.ones(len(first), np.int8), (first, second)), shape=(n, n))
-    count, piece = connected_components(graph, directed=False)
+    count, piece = _ground_pieces(grid, index, cfg.island_connect)
     reach = max(1, int(round(cfg.island_reach / c)))
     work, scratch, around = opening.work, opening.scratch, opening.eroded
     # Higher ground within reach of each cell: what raises nothing is judged on it.
@@ -1245,69 +1168,86 @@ def _islands_and_pits(grid: np.ndarray, cfg: HybridSettings, opening: _Opening
     lower[occupied] = np.where(size[piece] >= cfg.island_min_cells, grid[occupied], np.inf)
     sunk = np.flatnonzero(has_higher)
     if len(sunk):
-        r, q = np.divmod(sunk, cols)
-        dr, dq = np.mgrid[-reach:reach + 1, -reach:reach + 1]
-        rr, qq = r[:, None] + dr.ravel(), q[:, None] + dq.ravel()
-        inside = (rr >= 0) & (rr < rows) & (qq >= 0) & (qq < cols)
-        rr, qq = rr.clip(0, rows - 1), qq.clip(0, cols - 1)
-        window = np.where(inside, grid[rr, qq], np.inf)
-        with np.errstate(invalid="ignore"):
-            higher = (window > grid.ravel()[sunk, None] + cfg.island_rise) & np.isfinite(window)
-        # Higher ground of another piece: a pitched roof rising 2 m within the reach has
-        # its own ridge above its eaves (simulated urban flight, seed 2: 2 565 points of a
-        # roof 10-13 m up taken for ground in one message)
         own = piece[index.ravel()[sunk]]
-        above[own[(higher & (piece[index[rr, qq]] != own[:, None])).any(axis=1)]] = True
-        pit = higher.sum(axis=1) >= cfg.island_pit_share * (inside.sum(axis=1) - 1)
+        other_higher, pit = _higher_ground_around(grid, index, piece, sunk, own, reach, cfg)
+        above[own[other_higher]] = True
         lower.ravel()[sunk[pit]] = np.inf
-        pits.ravel()[sunk[pit & (size[piece[index.ravel()[sunk]]] <= cfg.pit_cells)]] = True
+        pits.ravel()[sunk[pit & (size[own] <= cfg.pit_cells)]] = True
     _window_extreme(lower, reach, 0, np.minimum, np.inf, scratch, work)
     _window_extreme(scratch, reach, 1, np.minimum, np.inf, around, work)
     below = np.bincount(piece, (around < grid - cfg.island_rise)[occupied], count) > 0
     island = below & ~above
     if not island.any():
         return out, pits
-    # The extent of the candidates only (few cells).
-    cells = np.flatnonzero(island[piece])
-    row, col = np.divmod(np.flatnonzero(occupied.ravel())[cells], cols)
-    lo_r, hi_r = np.full(count, rows), np.full(count, -1)
-    lo_c, hi_c = np.full(count, cols), np.full(count, -1)
-    which = piece[cells]
-    np.minimum.at(lo_r, which, row)
-    np.maximum.at(hi_r, which, row)
-    np.minimum.at(lo_c, which, col)
-    np.maximum.at(hi_c, which, col)
-    extent = (np.maximum(hi_r - lo_r, hi_c - lo_c) + 1) * c
-    island &= extent <= cfg.island_extent
+    island &= _piece_extents(island, piece, occupied, c) <= cfg.island_extent
     out[occupied] = island[piece]
     return out, pits
 
 
-def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
-                         fixed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Raster ground filter (progressive morphological opening, as SMRF, made robust).
+@dataclass
+class _Raster:
+    """The grid a cloud is filtered on (rows = y, cols = x, `cell` m cells) and the cell of
+    each of its points. The first `n` points are the cloud's, the rest context ground."""
 
-    pts: (N, 3) centred points; fixed: (F, 3) context ground points (grid data only).
-    Returns ((N,) bool ground, (N,) ground height under each point, m). Everything is
-    raster work on the small grid of lowest points plus one bilinear lookup per point;
-    the grid-sized work arrays are allocated once per call and reused (see _Inpainter).
-    """
-    c = cfg.cell
-    allp = pts if fixed is None else np.concatenate([pts, fixed])
-    n = len(pts)
-    check_extent(allp, c)
-    origin = (np.array([allp[:, 0].min(), allp[:, 1].min()])  # (axis-0 reductions are slow)
-              - c * np.asarray(cfg.anchor, dtype=np.float64))
-    # (a point on a cell's edge: see cell_index)
-    col, row = (cell_index(allp[:, a] - origin[a], c) for a in (0, 1))
-    shape = (int(row.max()) + 1, int(col.max()) + 1)  # rows = y, cols = x
-    flat = row * shape[1] + col
-    z = np.ascontiguousarray(allp[:, 2])
+    cell: float  # m
+    n: int  # the cloud's points (N); the other F of `xyz` are context
+    xyz: np.ndarray  # (N + F, 3) m, the points, then the context
+    z: np.ndarray  # (N + F,) m, xyz's heights, contiguous
+    origin: np.ndarray  # (2,) m, x and y of the lower-left corner of cell (0, 0)
+    shape: tuple[int, int]  # (rows, cols)
+    flat: np.ndarray  # (N + F,) int64 flat cell of each point: row x cols + col
+
+    @classmethod
+    def of(cls, pts: np.ndarray, fixed: np.ndarray | None, cfg: HybridSettings) -> _Raster:
+        """The grid of `cfg.cell` m cells over (N, 3) centred points `pts` and (F, 3) context
+        ground `fixed` (m), its corner `cfg.anchor` cells before their lowest x and y.
+        CloudFormatError when they span too many cells (`check_extent`)."""
+        c = cfg.cell
+        allp = pts if fixed is None else np.concatenate([pts, fixed])
+        check_extent(allp, c)
+        origin = (np.array([allp[:, 0].min(), allp[:, 1].min()])  # (axis-0 reductions are slow)
+                  - c * np.asarray(cfg.anchor, dtype=np.float64))
+        # (a point on a cell's edge: see cell_index)
+        col, row = (cell_index(allp[:, a] - origin[a], c) for a in (0, 1))
+        shape = (int(row.max()) + 1, int(col.max()) + 1)  # rows = y, cols = x
+        return cls(cell=c, n=len(pts), xyz=allp, z=np.ascontiguousarray(allp[:, 2]),
+                   origin=origin, shape=shape, flat=row * shape[1] + col)
+
+
+@dataclass
+class _Labels:
+    """The hybrid filter's labels after the label rounds, and the ground they make; the
+    steps after the rounds update them in place."""
+
+    ground: np.ndarray  # (N,) bool
+    usable: np.ndarray  # (N,) bool: neither a low blunder nor a lone echo, so may be ground
+    # (N + F,) m: z of the ground points and of the context (but its low blunders), +inf
+    # for the others: they enter the surface's lowest points as no point
+    z_kept: np.ndarray
+    band: np.ndarray  # (N,) m, how far from the surface a ground point may lie
+    surface: np.ndarray  # (rows, cols) m, the in-painted surface the labels were judged on
+    grid: np.ndarray  # (rows, cols) m, lowest ground point per cell, +inf where none
+    have_grid: bool  # whether a round built `grid` (if not, it is uninitialised)
+    sparse: bool  # the median ground density of the first labels is under `dense_from`
+
+    def leave_ground(self, leave: np.ndarray, raster: _Raster) -> None:
+        """The points of (N,) bool `leave` are no longer ground; `grid` follows."""
+        self.ground = self.ground & ~leave
+        self.z_kept[:raster.n][leave] = np.inf
+        _grid_min(raster.flat, self.z_kept, raster.shape, out=self.grid, empty=np.inf)
+
+
+def _low_blunders(raster: _Raster, cfg: HybridSettings) -> tuple[np.ndarray, np.ndarray]:
+    """((N + F,) bool low blunders, (rows, cols) m lowest point per cell of the other points,
+    NaN where none).
+
+    A low blunder lies more than `low_outlier` below the lowest point of the other cells of
+    the `low_window` x `low_window` square around its own. (A median would also flag
+    narrow ground between roofs, such as rail tracks.) Again without those found, up to
+    LOW_ROUNDS times: echoes come in twos and threes a few metres apart, and a deeper one
+    shielded a shallower one, which stayed ground."""
+    flat, z, shape = raster.flat, raster.z, raster.shape
     zmin = _grid_min(flat, z, shape)
-    # Low blunders: a point far below the lowest point of the cells around its own. (A
-    # median would also flag narrow ground between roofs, such as rail tracks.) Again
-    # without those found, up to LOW_ROUNDS times: echoes come in twos and threes a few
-    # metres apart, and a deeper one shielded a shallower one, which stayed ground.
     low = np.zeros(len(z), bool)
     for _ in range(LOW_ROUNDS):
         neighbour_min = _neighbour_min(np.where(np.isnan(zmin), np.inf, zmin),
@@ -1318,48 +1258,101 @@ def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
             break
         low |= new
         zmin = _grid_min(flat[~low], z[~low], shape)
-    fill = _Inpainter(shape)
+    return low, zmin
+
+
+def _opening_radii(cfg: HybridSettings) -> tuple[list[int], int]:
+    """(the opening's window radii in cells, ascending, the last `window`; the radius up to
+    which the flags count on steep ground, `steep_window`, in cells).
+
+    Radii grow one cell at a time up to `fine_window`, then two: the large windows only
+    remove whole buildings, which a 2-cell step finds as well (18 % faster, ISPRS total
+    error 0.04 points better)."""
+    c = cfg.cell
     max_radius = max(1, int(round(cfg.window / c)))
     steep_radius = min(max(1, int(round(cfg.steep_window / c))), max_radius)
-    # Radii grow one cell at a time up to `fine_window`, then two: the large windows only
-    # remove whole buildings, which a 2-cell step finds as well (ISPRS mean total error
-    # 4.07 % vs 4.11 % with every radius, 18 % faster; strides of 3, or 2 from 2-4 m, lost
-    # 0.01-0.2 points).
     fine_radius = max(1, int(round(cfg.fine_window / c)))
     radii = [r for r in range(1, max_radius + 1)
              if r <= fine_radius or (r - fine_radius) % 2 == 0 or r == max_radius]
-    # Progressive opening with growing square windows. The flags of the first
-    # `steep_window` metres are kept apart: on steep ground they are the answer (see
-    # _steep_objects).
-    first = fill(zmin).copy()
-    # (its work arrays also serve the rim, peak and island windows, which may be the wider)
-    opening = _Opening(shape, max(max_radius, int(round(cfg.rim_window / c)),
-                                  int(round(cfg.peak_window / c)),
-                                  int(round(cfg.island_reach / c))))
+    return radii, steep_radius
+
+
+def _without(zmin: np.ndarray, objects: np.ndarray) -> np.ndarray:
+    """(rows, cols) m: the lowest points per cell `zmin` (NaN where none), NaN on the
+    (rows, cols) bool object cells too: what the ground surface is in-painted from."""
+    return np.where(objects | np.isnan(zmin), np.nan, zmin)
+
+
+def _object_cells(zmin: np.ndarray, first: np.ndarray, opening: _Opening, fill: _Inpainter,
+                  radii: list[int], steep_radius: int, cfg: HybridSettings
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """((rows, cols) bool object cells, the same from the radii up to `steep_radius` only)
+    of the progressive opening of `first`, the in-painted (rows, cols) lowest points `zmin`
+    (m, NaN where none), by the square windows of `radii` cells.
+
+    With `trend_window`, the object cells are those of a second opening, of `first` minus
+    the median trend of the ground surface after the first opening (see HybridSettings),
+    and the steep-window flags those of both."""
+    c = cfg.cell
     objects, near = opening(first, radii, steep_radius, cfg.slope * c)
-    if cfg.trend_window > 0:  # the objects of the de-trended surface (see HybridSettings)
-        ground0 = fill(np.where(objects | np.isnan(zmin), np.nan, zmin))
+    if cfg.trend_window > 0:
+        ground0 = fill(_without(zmin, objects))
         # An odd number of blocks: the median of a plane is then the plane (centred).
         window = 2 * max(0, int(round((cfg.trend_window / (c * cfg.trend_block) - 1) / 2))) + 1
         trend = _median_trend(ground0, cfg.trend_block, window)
-        flat_objects, flat_near = opening(first - trend, radii, steep_radius, cfg.slope * c)
-        objects = flat_objects
-        near = near & flat_near
-    surface = fill(np.where(objects | np.isnan(zmin), np.nan, zmin))
-    slope_grid = _slope(surface, c)
+        objects, detrended_near = opening(first - trend, radii, steep_radius, cfg.slope * c)
+        near = near & detrended_near
+    return objects, near
+
+
+def _object_free_surface(zmin: np.ndarray, objects: np.ndarray, near: np.ndarray,
+                         fill: _Inpainter, cfg: HybridSettings) -> tuple[np.ndarray, np.ndarray]:
+    """((rows, cols) m ground surface in-painted across the object cells, (rows, cols) its
+    slope, rise over run) from the lowest points per cell `zmin` (m, NaN where none).
+
+    The object cells are `objects`, but where that surface is steeper than `steep_slope`
+    the small-window flags `near` (see _steep_objects), and the surface is then in-painted
+    again. The surface may be `fill`'s own array, which its next call overwrites."""
+    surface = fill(_without(zmin, objects))
+    slope_grid = _slope(surface, cfg.cell)
     mixed = _steep_objects(objects, near, slope_grid, cfg.steep_slope)
     if mixed is not objects:
-        objects = mixed
-        surface = fill(np.where(objects | np.isnan(zmin), np.nan, zmin))
-        slope_grid = _slope(surface, c)
-    at = Bilinear(shape, origin, c, pts[:, :2])
+        surface = fill(_without(zmin, mixed))
+        slope_grid = _slope(surface, cfg.cell)
+    return surface, slope_grid
+
+
+def _lone_echoes(raster: _Raster, grid: np.ndarray, z_kept: np.ndarray, cfg: HybridSettings
+                 ) -> np.ndarray:
+    """(N + F,) bool: the ground points within `low_outlier` of the floor of a lone low
+    cell (see _lone_low_cells) of (rows, cols) `grid`, the lowest ground point per cell (m,
+    +inf where none); z_kept: (N + F,) m heights of the ground points, +inf for the others."""
+    flat = raster.flat
+    lone = _lone_low_cells(grid, np.isfinite(grid), cfg.low_window // 2, cfg).ravel()[flat]
+    lone &= z_kept < grid.ravel()[flat] + cfg.low_outlier
+    return lone
+
+
+def _label_rounds(raster: _Raster, at: Bilinear, fill: _Inpainter, surface: np.ndarray,
+                  slope_grid: np.ndarray, low: np.ndarray, cfg: HybridSettings) -> _Labels:
+    """The labels of the points judged against the ground surface, rebuilt from them, up to
+    `passes` rounds or until the labels repeat.
+
+    surface, slope_grid: (rows, cols) m and rise over run, the object-free surface and its
+    slope; at: the bilinear lookup at the cloud's N points; low: (N + F,) bool low
+    blunders, never ground. A point is ground within the band of the surface: `threshold`
+    plus `scalar` x the slope (capped at 1), narrowed on dense ground after the first
+    round (see _dense_band). After the first round the lone echoes (see _lone_low_cells)
+    leave the ground for good. Each round rebuilds the surface from the points now taken
+    as ground (and the context), so that ground the opening cut off (terrace rims, ridges)
+    rejoins once its neighbours have raised the surface under it."""
+    n, z, flat, shape = raster.n, raster.z, raster.flat, raster.shape
     # Slope capped at 1 (45 degrees): at the foot of a wall or a tower leg the raster
     # gradient is huge, and an uncapped band would take the structure for ground.
     band = cfg.threshold + cfg.scalar * np.minimum(at(slope_grid), 1.0)
     ground = np.zeros(n, bool)
     usable = ~low[:n]
-    # Points not taken as ground enter the rebuilt surface's minimum as +inf (no point);
-    # the context is always ground, but for its low blunders.
+    # The context is always ground, but for its low blunders.
     z_kept = np.where(low, np.inf, z)
     gap = np.empty(n)
     grid = np.empty(shape)
@@ -1367,27 +1360,22 @@ def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
     sparse = False
     for i in range(cfg.passes):
         np.subtract(z[:n], at(surface, out=gap), out=gap)
-        labels = np.less_equal(np.abs(gap, out=gap), band) & usable
-        if i and np.array_equal(labels, ground):
+        in_band = np.less_equal(np.abs(gap, out=gap), band) & usable
+        if i and np.array_equal(in_band, ground):
             break  # converged: the surface would be rebuilt from the same points
-        ground = labels
+        ground = in_band
         if i == 0:
-            density = _ground_density(flat, ground, shape, c)
+            density = _ground_density(flat, ground, shape, raster.cell)
             band = _dense_band(band, density, cfg)
-            # Sparse scans (face and peak tests): the median ground density of the first
-            # labels under `dense_from`.
-            sparse = ground.any() and float(np.median(density[ground])) < cfg.dense_from
-        # Refine: the surface of the points now taken as ground (and the context). Each
-        # round lets ground the opening cut off (terrace rims, ridges) rejoin once its
-        # neighbours have raised the surface under it.
+            # Sparse scans (face and peak tests; no island test): the median ground density
+            # of the first labels under `dense_from`.
+            sparse = bool(ground.any()) and float(np.median(density[ground])) < cfg.dense_from
         if ground.any() or len(z) > n:
             np.copyto(z_kept[:n], z[:n])
             np.copyto(z_kept[:n], np.inf, where=~ground)
             _grid_min(flat, z_kept, shape, out=grid, empty=np.inf)
-            if i == 0 and cfg.lone_reach > 0:  # (see _lone_low_cells)
-                lone = _lone_low_cells(grid, np.isfinite(grid), cfg.low_window // 2,
-                                       cfg).ravel()[flat]
-                lone &= z_kept < grid.ravel()[flat] + cfg.low_outlier
+            if i == 0 and cfg.lone_reach > 0:
+                lone = _lone_echoes(raster, grid, z_kept, cfg)
                 if lone.any():
                     usable &= ~lone[:n]
                     ground = ground & ~lone[:n]
@@ -1395,89 +1383,152 @@ def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
                     _grid_min(flat, z_kept, shape, out=grid, empty=np.inf)
             surface = fill(grid)
             have_grid = True
-    rebuild = False
-    if cfg.island_rise > 0 and have_grid and not sparse:  # (see _islands_and_pits)
-        islands, pits = _islands_and_pits(grid, cfg, opening)
-        cells = flat[:n]
-        leave = islands.ravel()[cells] | (pits.ravel()[cells]
-                                          & (z[:n] < grid.ravel()[cells] + cfg.island_rise))
-        leave &= ground
-        if leave.any():
-            ground = ground & ~leave
-            z_kept[:n][leave] = np.inf
-            grid = _grid_min(flat, z_kept, shape, out=grid, empty=np.inf)
-            # The walls under an island's edges were in the band of the surface across the
-            # roof; on the surface without it they stand metres up and leave too
-            # (simulated urban flights: wall points 1-3 m up labelled ground).
-            surface = fill(grid)
-            np.subtract(z[:n], at(surface, out=gap), out=gap)
-            wall = ground & (np.abs(gap, out=gap) > band)
-            if wall.any():
-                ground = ground & ~wall
-                z_kept[:n][wall] = np.inf
-                grid = _grid_min(flat, z_kept, shape, out=grid, empty=np.inf)
-            rebuild = True
-    if cfg.rim_window > 0 and have_grid:  # rims of terrace steps and cliffs (see _rim_points)
-        # Only the lowest point of its cell is judged for rims (the same answers, 30 % fewer
-        # candidates); cliff faces are judged on all points (steep faces hold several).
-        judge = ~ground & usable & (z[:n] <= zmin.ravel()[flat[:n]])
-        ground = ground.copy()
-        grid_flat = grid.reshape(-1)
-        # The highest and lowest ground around each cell are taken once, before the first
-        # pass: they only pre-select the candidates; each test reads the ground points.
-        windows = _GroundWindows(grid, flat, max(1, int(round(cfg.rim_window / c))), opening)
-        added: list[np.ndarray] = []
-        # Not on dense scans (median ground density of the first labels over
-        # `dense_from`): there the opening resolves what faces it can, and on the AHN
-        # corridor the test took bushes on ditch banks (07CZ2_14 kappa 0.9002 -> 0.8998).
-        faces = cfg.face_radius > 0 and sparse
-        for rim_pass in range(max(1, cfg.rim_passes)):
-            cand = np.flatnonzero(judge & ~ground)
-            if rim_pass:
-                cand = windows.near(np.concatenate(added), cand) if added else cand[:0]
-            steps: list[np.ndarray | None] = [
-                _rim_points(allp, flat, windows, cand, np.flatnonzero(np.isfinite(z_kept)), cfg)]
-            if faces and rim_pass < cfg.rim_passes - 1:
-                steps.append(None)  # the face test, on the ground with these rims
-            for new in steps:
-                if new is None:
-                    new = _face_points(allp, flat, windows, np.flatnonzero(usable & ~ground),
-                                       np.flatnonzero(np.isfinite(z_kept)), cfg)
-                if len(new):
-                    ground[new] = True
-                    z_kept[new] = z[new]
-                    np.minimum.at(grid_flat, flat[new], z[new])
-                    added.append(new)
-        peaks = False
-        if sparse and cfg.peak_window > 0:  # single raised points (see _peak_points)
-            radius = max(1, int(round(cfg.peak_window / c)))
-            kept = np.isfinite(z_kept)
-            top = np.full(grid.size, -np.inf)
-            np.maximum.at(top, flat[kept], z_kept[kept])
-            for _ in range(cfg.peak_passes):
-                peak = _peak_points(top.reshape(shape), z_kept, flat, n, radius,
-                                    cfg.peak_rise, opening)
-                if not peak.any():
-                    break
-                ground &= ~peak
-                z_kept[:n][peak] = np.inf
-                peaks = True
-                # The highest and lowest ground of the cells that lost a point, again.
-                hit = np.zeros(grid.size, bool)
-                hit[flat[:n][peak]] = True
-                top[hit], grid_flat[hit] = -np.inf, np.inf
-                again = np.flatnonzero(hit[flat] & np.isfinite(z_kept))
-                np.maximum.at(top, flat[again], z_kept[again])
-                np.minimum.at(grid_flat, flat[again], z_kept[again])
+    return _Labels(ground=ground, usable=usable, z_kept=z_kept, band=band, surface=surface,
+                   grid=grid, have_grid=have_grid, sparse=sparse)
+
+
+def _drop_islands_and_pits(raster: _Raster, labels: _Labels, at: Bilinear, fill: _Inpainter,
+                           opening: _Opening, cfg: HybridSettings) -> bool:
+    """The ground points of raised islands, of pits (within `island_rise` of the pit's
+    floor) and of the walls under the islands' edges leave the ground (see
+    _islands_and_pits); `labels` updated in place. Returns whether any point left."""
+    n, z, cells = raster.n, raster.z, raster.flat[:raster.n]
+    islands, pits = _islands_and_pits(labels.grid, cfg, opening)
+    leave = islands.ravel()[cells] | (pits.ravel()[cells]
+                                      & (z[:n] < labels.grid.ravel()[cells] + cfg.island_rise))
+    leave &= labels.ground
+    if not leave.any():
+        return False
+    labels.leave_ground(leave, raster)
+    # The walls under an island's edges were in the band of the surface across the roof;
+    # on the surface without it they stand metres up and leave too (simulated urban
+    # flights: wall points 1-3 m up labelled ground).
+    surface = fill(labels.grid)
+    gap = np.subtract(z[:n], at(surface))
+    wall = labels.ground & (np.abs(gap, out=gap) > labels.band)
+    if wall.any():
+        labels.leave_ground(wall, raster)
+    return True
+
+
+def _add_rims_and_faces(raster: _Raster, labels: _Labels, zmin: np.ndarray, opening: _Opening,
+                        cfg: HybridSettings) -> list[np.ndarray]:
+    """Rejected points on the rims of plateaus (see _rim_points) and, on sparse scans, on
+    cliff faces (see _face_points) join the ground, in `rim_passes` passes; `labels` updated
+    in place (`ground` a new array; `grid` lowered where they join, the surface not
+    rebuilt). zmin: (rows, cols) m lowest point per cell, blunders left out (NaN where
+    none). Returns the indices into the N points of those that joined, one array per test
+    that gave any."""
+    n, z, flat = raster.n, raster.z, raster.flat
+    usable, z_kept = labels.usable, labels.z_kept
+    # Only the lowest point of its cell is judged for rims (the same answers, 30 % fewer
+    # candidates); cliff faces are judged on all points (steep faces hold several).
+    judge = ~labels.ground & usable & (z[:n] <= zmin.ravel()[flat[:n]])
+    ground = labels.ground = labels.ground.copy()
+    grid_flat = labels.grid.reshape(-1)
+    # The highest and lowest ground around each cell are taken once, before the first
+    # pass: they only pre-select the candidates; each test reads the ground points.
+    windows = _GroundWindows(labels.grid, flat, max(1, int(round(cfg.rim_window / raster.cell))),
+                             opening)
+    added: list[np.ndarray] = []
+    # Not on dense scans: there the opening resolves what faces it can, and on the AHN
+    # corridor the test took bushes on ditch banks.
+    faces = cfg.face_radius > 0 and labels.sparse
+
+    def join(new: np.ndarray) -> None:
+        if len(new):
+            ground[new] = True
+            z_kept[new] = z[new]
+            np.minimum.at(grid_flat, flat[new], z[new])
+            added.append(new)
+
+    for rim_pass in range(max(1, cfg.rim_passes)):
+        cand = np.flatnonzero(judge & ~ground)
+        if rim_pass:  # only near what the passes before gave back
+            cand = windows.near(np.concatenate(added), cand) if added else cand[:0]
+        join(_rim_points(raster.xyz, flat, windows, cand, np.flatnonzero(np.isfinite(z_kept)),
+                         cfg))
+        if faces and rim_pass < cfg.rim_passes - 1:  # on the ground with these rims
+            join(_face_points(raster.xyz, flat, windows, np.flatnonzero(usable & ~ground),
+                              np.flatnonzero(np.isfinite(z_kept)), cfg))
+    return added
+
+
+def _drop_peaks(raster: _Raster, labels: _Labels, opening: _Opening, cfg: HybridSettings
+                ) -> bool:
+    """Single raised ground points (see _peak_points) leave the ground, `peak_passes` times;
+    `labels` updated in place (`ground` too: the array is changed, not replaced). Returns
+    whether any point left."""
+    n, flat = raster.n, raster.flat
+    z_kept, grid_flat = labels.z_kept, labels.grid.reshape(-1)
+    radius = max(1, int(round(cfg.peak_window / raster.cell)))
+    kept = np.isfinite(z_kept)
+    top = np.full(grid_flat.size, -np.inf)  # highest ground point per cell
+    np.maximum.at(top, flat[kept], z_kept[kept])
+    peaks = False
+    for _ in range(cfg.peak_passes):
+        peak = _peak_points(top.reshape(raster.shape), z_kept, flat, n, radius, cfg.peak_rise,
+                            opening)
+        if not peak.any():
+            break
+        labels.ground &= ~peak
+        z_kept[:n][peak] = np.inf
+        peaks = True
+        # The highest and lowest ground of the cells that lost a point, again.
+        hit = np.zeros(grid_flat.size, bool)
+        hit[flat[:n][peak]] = True
+        top[hit], grid_flat[hit] = -np.inf, np.inf
+        again = np.flatnonzero(hit[flat] & np.isfinite(z_kept))
+        np.maximum.at(top, flat[again], z_kept[again])
+        np.minimum.at(grid_flat, flat[again], z_kept[again])
+    return peaks
+
+
+def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
+                         fixed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Raster ground filter (progressive morphological opening, as SMRF, made robust).
+
+    pts: (N, 3) centred points, m; fixed: (F, 3) context ground points (grid data only).
+    Returns ((N,) bool ground, (N,) ground height under each point, m). Everything is
+    raster work on the small grid of lowest points plus one bilinear lookup per point;
+    the grid-sized work arrays are allocated once per call and reused (see _Inpainter).
+
+    The steps: low blunders out (`_low_blunders`); the object cells of the opening
+    (`_object_cells`) and the surface without them (`_object_free_surface`); the label
+    rounds against the rebuilt surface (`_label_rounds`); then, on dense scans, raised
+    islands and pits out (`_drop_islands_and_pits`); rims and cliff faces in
+    (`_add_rims_and_faces`) and, on sparse scans, single raised points out
+    (`_drop_peaks`); the surface rebuilt when they changed the ground.
+    """
+    c = cfg.cell
+    raster = _Raster.of(pts, fixed, cfg)
+    low, zmin = _low_blunders(raster, cfg)
+    fill = _Inpainter(raster.shape)
+    radii, steep_radius = _opening_radii(cfg)
+    first = fill(zmin).copy()
+    # (its work arrays also serve the rim, peak and island windows, which may be the wider)
+    opening = _Opening(raster.shape, max(radii[-1], int(round(cfg.rim_window / c)),
+                                         int(round(cfg.peak_window / c)),
+                                         int(round(cfg.island_reach / c))))
+    objects, near = _object_cells(zmin, first, opening, fill, radii, steep_radius, cfg)
+    surface, slope_grid = _object_free_surface(zmin, objects, near, fill, cfg)
+    at = Bilinear(raster.shape, raster.origin, c, pts[:, :2])
+    labels = _label_rounds(raster, at, fill, surface, slope_grid, low, cfg)
+    rebuild = False  # the ground changed since the labels' surface was in-painted
+    if cfg.island_rise > 0 and labels.have_grid and not labels.sparse:
+        rebuild = _drop_islands_and_pits(raster, labels, at, fill, opening, cfg)
+    if cfg.rim_window > 0 and labels.have_grid:
+        added = _add_rims_and_faces(raster, labels, zmin, opening, cfg)
+        # (the peak test runs only with the rim test on)
+        peaks = labels.sparse and cfg.peak_window > 0 and _drop_peaks(raster, labels,
+                                                                      opening, cfg)
         if added or peaks:
             # The surface through them too: their height above ground is then ~0 (the
             # surface in-painted across the step put them metres up, and the DEM, which
             # takes only the ground near the surface, lost the rims).
             rebuild = True
-    if rebuild:  # (and without the islands)
-        surface = fill(grid)
-    z_ground = at(surface)
-    return ground, z_ground
+    surface = fill(labels.grid) if rebuild else labels.surface
+    return labels.ground, at(surface)
 
 
 class GroundSurface:
@@ -1645,8 +1696,8 @@ def _order_free_sample(xyz: np.ndarray, size: int) -> np.ndarray | None:
     (N <= 2 `size`, coordinates that are not float32/64, or points sharing so few x, y
     values that the sample came out too small: the quartiles of all, exact).
 
-    Every k-th point, as before, gave a cloud in another order other quartiles, and the
-    points near a bound changed sides. The quartiles of all points (np.partition) cost
+    Every k-th point would give a cloud in another order other quartiles, and the points
+    near a bound would change sides. The quartiles of all points (np.partition) cost
     1.3 ms a column per 50 000 points, 15 ms per 500 000; this sample ~0.15 and ~2 ms."""
     n = len(xyz)
     if n <= 2 * size or xyz.dtype not in (np.float32, np.float64):
