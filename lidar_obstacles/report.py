@@ -21,6 +21,7 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
+from lidar_obstacles.core.arrays import points_xyz
 from lidar_obstacles.core.classes import CLASS_HEX
 from lidar_obstacles.core.metrics import jsonable, latency_stats
 from lidar_obstacles.errors import CloudFormatError, LidarObstaclesError
@@ -93,13 +94,6 @@ def _thousands(value: float) -> str:
 
 def _coord_label(axis: str, offset: float) -> str:
     return f"{axis} − {_thousands(offset)} (m)" if offset else f"{axis} (m)"
-
-
-def _xyz(xyz: Any) -> np.ndarray:
-    pts = np.asarray(xyz, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] < 3 or pts.shape[0] == 0:
-        raise CloudFormatError(f"xyz must be (N, 3) with N > 0, got shape {pts.shape}")
-    return pts[:, :3]
 
 
 def _subsample(keep: np.ndarray, max_points: int, seed: int) -> np.ndarray:
@@ -264,7 +258,7 @@ def cloud_views_png(
     The legend lists the classes present with their full point counts.
     Returns the path of the PNG (11 in = 1650 px wide; height follows the data's shape).
     """
-    pts = _xyz(xyz)
+    pts = points_xyz(xyz, "cloud_views_png: xyz", min_points=1)
     codes = _codes(classes, pts.shape[0], "classes")
     emph = np.isin(codes, _EMPHASISED)
     idx = _subsample(emph, max_points, seed)
@@ -330,7 +324,7 @@ def error_views_png(
     ``max_points``), the correct ones are sampled with ``seed``. The legend gives the
     share of each category among all N points.
     """
-    pts = _xyz(xyz)
+    pts = points_xyz(xyz, "error_views_png: xyz", min_points=1)
     ref = _codes(reference, pts.shape[0], "reference")
     pred = _codes(predicted, pts.shape[0], "predicted")
     cat = error_categories(ref, pred)

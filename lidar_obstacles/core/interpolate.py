@@ -31,7 +31,7 @@ from scipy.linalg import solve_triangular
 from scipy.optimize import least_squares
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
-from lidar_obstacles.core.arrays import thread_pools, tree_query
+from lidar_obstacles.core.arrays import points_xyz, thread_pools, tree_query
 from lidar_obstacles.config import KrigingConfig, RbfConfig, RbfnnConfig
 from lidar_obstacles.errors import CloudFormatError
 
@@ -97,14 +97,14 @@ def neighbour_residual(xyz: np.ndarray, indptr: np.ndarray, neighbours: np.ndarr
 
 
 def _check(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray) -> tuple[np.ndarray, ...]:
-    xy = np.asarray(xy, dtype=np.float64)
+    """xy (N, 2) m, z (N,) m and query_xy (M, 2) m as float64, or CloudFormatError for
+    another shape. Not searched for NaN: the DEM hands only its finite ground."""
+    xy = points_xyz(xy, "interpolate: xy", columns=2, nonfinite="keep")
     z = np.asarray(z, dtype=np.float64)
-    q = np.asarray(query_xy, dtype=np.float64)
-    if xy.ndim != 2 or xy.shape[1] != 2 or z.shape != (len(xy),):
-        raise CloudFormatError(f"interpolate: expected xy (N, 2) and z (N,), got {xy.shape} "
-                               f"and {z.shape}")
-    if q.ndim != 2 or q.shape[1] != 2:
-        raise CloudFormatError(f"interpolate: expected query_xy (M, 2), got {q.shape}")
+    if z.shape != (len(xy),):
+        raise CloudFormatError(f"interpolate: expected z of shape ({len(xy)},) as xy "
+                               f"{xy.shape}, got {z.shape}")
+    q = points_xyz(query_xy, "interpolate: query_xy", columns=2, nonfinite="keep")
     return xy, z, q
 
 

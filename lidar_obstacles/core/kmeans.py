@@ -179,14 +179,11 @@ def kmeans(x: np.ndarray, k: int, *, restarts: int = 10, max_iter: int = 300,
     is below ``tol`` times the mean feature variance (scikit-learn's convention).
     Deterministic for a given seed / Generator. Raises CloudFormatError for bad input.
     """
-    arr = np.asarray(x, dtype=np.float64)
-    if arr.ndim == 1:
-        arr = arr[:, None]
-    if arr.ndim != 2 or len(arr) == 0:
-        raise CloudFormatError(f"kmeans: expected (N,) or (N, D) features with N > 0, got "
-                               f"shape {np.shape(x)}")
-    if not np.all(np.isfinite(arr)):
-        raise CloudFormatError("kmeans: features contain NaN or Inf")
+    arr = np.asarray(x)
+    one_feature = arr.ndim == 1
+    arr = points_xyz(arr[:, None] if one_feature else arr,
+                     "kmeans: x (one feature, as a column)" if one_feature else "kmeans: x",
+                     columns=None, min_points=1)
     if not 1 <= k <= len(arr):
         raise CloudFormatError(f"kmeans: k={k} must be between 1 and N={len(arr)}")
     if restarts < 1 or max_iter < 1:
