@@ -419,13 +419,15 @@ def block_kappa_png(
     *,
     title: str = "ground/object kappa per block",
     xy: Any = None,
+    seed: int = 0,
 ) -> Path:
     """Map of the per-block kappa.
 
     block_kappa: (ny, nx) float, row 0 south, NaN (or None) where the block is not
     eligible. extent: (xmin, xmax, ymin, ymax) of the grid, metres (the ``blocks.extent``
     of :func:`lidar_obstacles.core.metrics.block_kappa`). xy: optional (N, 2) points,
-    drawn faintly (a sample of 20 000) to show where the data lie.
+    drawn faintly (a sample of 20 000, drawn with ``seed``: fixed, so that the same data
+    give the same picture) to show where the data lie.
     Colours run red (0) - yellow - green (1); values are written in the cells; hatched
     grey marks blocks that are not eligible.
     """
@@ -446,7 +448,7 @@ def block_kappa_png(
     if xy is not None:
         pts = np.asarray(xy, dtype=np.float64)[:, :2]
         if pts.shape[0] > 20_000:
-            pts = pts[np.random.default_rng(0).choice(pts.shape[0], 20_000, replace=False)]
+            pts = pts[np.random.default_rng(seed).choice(pts.shape[0], 20_000, replace=False)]
         ax.scatter(pts[:, 0] - ox, pts[:, 1] - oy, s=0.3, c="black", alpha=0.25,
                    linewidths=0, rasterized=True, zorder=2)
     bw = (ext[1] - ext[0]) / nx

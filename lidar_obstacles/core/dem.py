@@ -323,6 +323,12 @@ def ground_blunders(xyz: np.ndarray, *, max_area: float, rise: float,
 # 50 000-point message on the AHN corridor), so a rolling DEM refits it every 10 updates.
 _REFIT_EVERY = 10
 
+# The seed of the interpolation's random draws (the kriging variogram's sample pairs and
+# held-out samples, the RBF network's training points): fixed, so the same ground gives
+# the same DEM in every run. Passed as an int, not a generator: each fit draws afresh, so
+# a rolling DEM's fill does not depend on how many fits came before it.
+INTERPOLATION_SEED = 0
+
 
 class _VariogramCache:
     """The kriging variogram of a rolling DEM, refitted every ``_REFIT_EVERY`` uses or
@@ -336,7 +342,8 @@ class _VariogramCache:
     def get(self, xy: np.ndarray, z: np.ndarray, cfg: KrigingConfig) -> Variogram:
         """The cached variogram, or one fitted to samples xy (N, 2) m, z (N,) m."""
         if self._vg is None or self._uses >= _REFIT_EVERY or cfg != self._cfg:
-            self._vg, self._cfg, self._uses = kriging_variogram(xy, z, cfg=cfg), cfg, 0
+            self._vg = kriging_variogram(xy, z, cfg=cfg, rng=INTERPOLATION_SEED)
+            self._cfg, self._uses = cfg, 0
         self._uses += 1
         return self._vg
 
@@ -447,7 +454,7 @@ class _Cells:
                              np.column_stack([qx, qy]), kriging_cfg=cfg.kriging,
                              rbf_cfg=cfg.rbf, rbfnn_cfg=cfg.rbfnn,
                              idw_neighbours=cfg.dem.idw_neighbours, idw_power=cfg.dem.idw_power,
-                             variogram=vg)
+                             rng=INTERPOLATION_SEED, variogram=vg)
         self.fill[r0 + tr, c0 + tc] = values.astype(np.float32)
 
     def grid(self, reason: str = "") -> DemGrid:

@@ -37,6 +37,10 @@ from lidar_obstacles.errors import CloudFormatError
 
 METHODS = ("tin", "idw", "kriging", "rbf", "rbfnn")
 _CHUNK = 4096  # local systems solved per stacked call: bounds memory to a few MB
+# The seed of the fits' random draws (the variogram's sample pairs, the nugget's held-out
+# samples, the RBF network's training points) when the caller gives none: fixed, so the
+# same samples give the same surface in every run. None draws from fresh entropy instead.
+SAMPLING_SEED = 0
 
 
 # --------------------------------------------------------------------------- input
@@ -254,7 +258,7 @@ class Variogram:
 
 
 def fit_variogram(xy: np.ndarray, z: np.ndarray, *, model: str, neighbours: int,
-                  rng: np.random.Generator | int | None = 0) -> Variogram:
+                  rng: np.random.Generator | int | None = SAMPLING_SEED) -> Variogram:
     """Fit a variogram to the samples' semivariances at the lags local kriging uses.
 
     Pairs: each of up to 3000 random samples with its 2*neighbours nearest (the short
@@ -422,7 +426,7 @@ def _ordinary(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray, vg: Variogram
 
 
 def choose_nugget(xy: np.ndarray, z: np.ndarray, vg: Variogram, *, neighbours: int,
-                  rng: np.random.Generator | int | None = 0) -> Variogram:
+                  rng: np.random.Generator | int | None = SAMPLING_SEED) -> Variogram:
     """The variogram ``vg`` with its nugget chosen by hold-out cross-validation.
 
     The binned fit's nugget is poor for LOCAL kriging: it comes from lags out to the sill
@@ -459,7 +463,7 @@ def choose_nugget(xy: np.ndarray, z: np.ndarray, vg: Variogram, *, neighbours: i
 
 
 def kriging_variogram(xy: np.ndarray, z: np.ndarray, *, cfg: KrigingConfig,
-                      rng: np.random.Generator | int | None = 0) -> Variogram:
+                      rng: np.random.Generator | int | None = SAMPLING_SEED) -> Variogram:
     """The variogram :func:`kriging` uses: shape, sill and range fitted to binned
     semivariances (:func:`fit_variogram`), nugget by cross-validation
     (:func:`choose_nugget`). xy: (N, 2) metres; z: (N,) metres."""
@@ -469,7 +473,7 @@ def kriging_variogram(xy: np.ndarray, z: np.ndarray, *, cfg: KrigingConfig,
 
 
 def kriging(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray, *, cfg: KrigingConfig,
-            rng: np.random.Generator | int | None = 0,
+            rng: np.random.Generator | int | None = SAMPLING_SEED,
             variogram: Variogram | None = None) -> np.ndarray:
     """Ordinary kriging on the ``cfg.neighbours`` nearest samples of each query, with
     ``variogram`` (default: :func:`kriging_variogram` of the samples). xy: (N, 2) metres;
@@ -608,7 +612,7 @@ def interpolate(method: str, xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray
                 rbfnn_cfg: RbfnnConfig = RbfnnConfig(), idw_neighbours: int = 8,
                 idw_power: float = 2.0, intensity: np.ndarray | None = None,
                 query_intensity: np.ndarray | None = None,
-                rng: np.random.Generator | int | None = 0,
+                rng: np.random.Generator | int | None = SAMPLING_SEED,
                 variogram: Variogram | None = None) -> np.ndarray:
     """Interpolate samples (xy (N, 2) metres, z (N,) metres) at query_xy (M, 2) metres.
 
