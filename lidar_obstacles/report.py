@@ -21,6 +21,7 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
+from lidar_obstacles.core.arrays import points_xyz
 from lidar_obstacles.core.classes import CLASS_HEX
 from lidar_obstacles.core.metrics import jsonable, latency_stats
 from lidar_obstacles.errors import CloudFormatError, LidarObstaclesError
@@ -93,13 +94,6 @@ def _thousands(value: float) -> str:
 
 def _coord_label(axis: str, offset: float) -> str:
     return f"{axis} − {_thousands(offset)} (m)" if offset else f"{axis} (m)"
-
-
-def _xyz(xyz: Any) -> np.ndarray:
-    pts = np.asarray(xyz, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] < 3 or pts.shape[0] == 0:
-        raise CloudFormatError(f"xyz must be (N, 3) with N > 0, got shape {pts.shape}")
-    return pts[:, :3]
 
 
 def _subsample(keep: np.ndarray, max_points: int, seed: int) -> np.ndarray:
@@ -264,7 +258,7 @@ def cloud_views_png(
     The legend lists the classes present with their full point counts.
     Returns the path of the PNG (11 in = 1650 px wide; height follows the data's shape).
     """
-    pts = _xyz(xyz)
+    pts = points_xyz(xyz, "cloud_views_png: xyz", min_points=1)
     codes = _codes(classes, pts.shape[0], "classes")
     emph = np.isin(codes, _EMPHASISED)
     idx = _subsample(emph, max_points, seed)
@@ -330,7 +324,7 @@ def error_views_png(
     ``max_points``), the correct ones are sampled with ``seed``. The legend gives the
     share of each category among all N points.
     """
-    pts = _xyz(xyz)
+    pts = points_xyz(xyz, "error_views_png: xyz", min_points=1)
     ref = _codes(reference, pts.shape[0], "reference")
     pred = _codes(predicted, pts.shape[0], "predicted")
     cat = error_categories(ref, pred)
@@ -425,13 +419,15 @@ def block_kappa_png(
     *,
     title: str = "ground/object kappa per block",
     xy: Any = None,
+    seed: int = 0,
 ) -> Path:
     """Map of the per-block kappa.
 
     block_kappa: (ny, nx) float, row 0 south, NaN (or None) where the block is not
     eligible. extent: (xmin, xmax, ymin, ymax) of the grid, metres (the ``blocks.extent``
     of :func:`lidar_obstacles.core.metrics.block_kappa`). xy: optional (N, 2) points,
-    drawn faintly (a sample of 20 000) to show where the data lie.
+    drawn faintly (a sample of 20 000, drawn with ``seed``: fixed, so that the same data
+    give the same picture) to show where the data lie.
     Colours run red (0) - yellow - green (1); values are written in the cells; hatched
     grey marks blocks that are not eligible.
     """
@@ -452,7 +448,7 @@ def block_kappa_png(
     if xy is not None:
         pts = np.asarray(xy, dtype=np.float64)[:, :2]
         if pts.shape[0] > 20_000:
-            pts = pts[np.random.default_rng(0).choice(pts.shape[0], 20_000, replace=False)]
+            pts = pts[np.random.default_rng(seed).choice(pts.shape[0], 20_000, replace=False)]
         ax.scatter(pts[:, 0] - ox, pts[:, 1] - oy, s=0.3, c="black", alpha=0.25,
                    linewidths=0, rasterized=True, zorder=2)
     bw = (ext[1] - ext[0]) / nx

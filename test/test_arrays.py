@@ -3,9 +3,10 @@ import numpy as np
 import pytest
 
 from lidar_obstacles.core.arrays import (all_columns, cell_index, column_max, column_mean,
-                                         column_min, distinct_points, release_free_memory,
-                                         reuse_freed_memory, row_norm, single_threaded_blas,
-                                         snap_micrometres, unique_ints)
+                                         column_min, distinct_points, points_xyz,
+                                         release_free_memory, reuse_freed_memory, row_norm,
+                                         single_threaded_blas, snap_micrometres, unique_ints)
+from lidar_obstacles.errors import CloudFormatError
 
 
 @pytest.mark.parametrize("shape", [(1, 3), (7, 2), (5000, 3)])
@@ -21,6 +22,43 @@ def test_reductions_match_numpy(shape):
     mask = rng.random(shape) > 0.3
     assert np.array_equal(all_columns(mask), mask.all(axis=1))
     assert np.allclose(row_norm(a), np.linalg.norm(a, axis=1))
+
+
+def test_points_xyz_passes_good_points_through_uncopied():
+    xyz = np.arange(12.0).reshape(4, 3)
+    assert points_xyz(xyz, "xyz") is xyz
+    assert points_xyz(np.zeros((0, 3)), "xyz").shape == (0, 3)  # no points is a cloud too
+    ints = points_xyz([[1, 2, 3]], "xyz")
+    assert ints.dtype == np.float64 and ints.tolist() == [[1.0, 2.0, 3.0]]
+
+
+@pytest.mark.parametrize("bad, kwargs, message", [
+    (np.zeros((1000, 6)), {}, r"^f: xyz: expected points of shape \(N, 3\), got \(1000, 6\)$"),
+    (np.zeros(9), {}, r"shape \(N, 3\), got \(9,\)$"),  # not 3 points
+    (np.zeros((4, 3)), {"columns": 2}, r"shape \(N, 2\), got \(4, 3\)$"),
+    (np.zeros((4, 0)), {"columns": None}, r"shape \(N, D\), got \(4, 0\)$"),
+    (np.zeros((0, 3)), {"min_points": 1}, r"shape \(N, 3\) with N >= 1, got \(0, 3\)$"),
+    (np.ones((4, 3), bool), {}, "expected numbers, got dtype bool"),
+    (np.array([["a", "b", "c"]]), {}, "expected numbers, got dtype <U1"),
+    ([[0.0, 1.0, 2.0], [3.0]], {}, "not an array of numbers"),
+    (np.array([[0.0, 0.0, np.nan], [0.0, np.inf, 0.0], [1.0, 1.0, 1.0]]), {},
+     "2 of 3 points have a NaN or infinite coordinate"),
+])
+def test_points_xyz_refuses_naming_the_argument_and_what_it_got(bad, kwargs, message):
+    with pytest.raises(CloudFormatError, match=message) as err:
+        points_xyz(bad, "f: xyz", **kwargs)
+    assert str(err.value).startswith("f: xyz: ")
+
+
+def test_points_xyz_drops_or_keeps_non_finite_rows_when_asked():
+    xyz = np.array([[0.0, 0.0, np.nan], [1.0, 2.0, 3.0], [-np.inf, 0.0, 0.0]])
+    assert points_xyz(xyz, "xyz", nonfinite="drop").tolist() == [[1.0, 2.0, 3.0]]
+    kept = points_xyz(xyz, "xyz", nonfinite="keep")
+    assert kept is xyz
+    xy = points_xyz(np.zeros((5, 2)), "xy", columns=2)
+    assert xy.shape == (5, 2)
+    features = points_xyz(np.zeros((5, 7)), "x", columns=None, min_points=5)
+    assert features.shape == (5, 7)
 
 
 @pytest.mark.parametrize("n, cells, ratio", [(0, 1, 2.0), (1, 1, 2.0), (30000, 5000, 2.0),

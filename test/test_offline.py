@@ -56,6 +56,18 @@ def sim_bag(tmp_path_factory) -> Path:
     return out
 
 
+def test_bag_timer_is_due_once_a_period_starts_again_when_the_clock_goes_back_and_at_the_end():
+    timer = offline._BagTimer(100)
+    assert not timer.due(1000)  # the first cloud starts it
+    due = [timer.due(t) for t in (1050, 1099, 1100, 1150, 1200)]
+    assert due == [False, False, True, False, True]
+    assert not timer.due(1250)
+    assert not timer.due(500)  # back more than a period: started again, due at 600
+    assert not timer.due(599) and timer.due(600)
+    assert timer.due(601, end=True)  # the end of the bag: due whatever the time
+    assert not offline._BagTimer(100).due(0) and offline._BagTimer(100).due(0, end=True)
+
+
 def test_simulate_then_replay_keeps_every_point_and_field(sim_bag, tmp_path):
     out = tmp_path / "replayed"
     summary = run_cli("replay", sim_bag, out)

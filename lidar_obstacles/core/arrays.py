@@ -13,9 +13,10 @@ import ctypes.util
 import functools
 import signal
 import threading
-from typing import TYPE_CHECKING, Any, Iterator
+from typing import TYPE_CHECKING, Any, Iterator, Literal
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from lidar_obstacles.errors import CloudFormatError
 
@@ -24,19 +25,52 @@ if TYPE_CHECKING:
     from threadpoolctl import ThreadpoolController
 
 
-def points_xyz(xyz: np.ndarray, what: str) -> np.ndarray:
-    """xyz as (N, 3) float64 metres (no copy when it is one already). CloudFormatError,
-    naming ``what``, when it has another shape or holds a NaN or an infinity: an (N, 6)
-    array must not pass as 2N points, and a NaN must not reach a plane fit (an SVD that
-    does not converge says nothing of the cloud)."""
-    arr = np.asarray(xyz, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise CloudFormatError(f"{what}: expected points of shape (N, 3), got {arr.shape}")
-    if not np.isfinite(arr).all():
-        bad = int(len(arr) - np.count_nonzero(all_columns(np.isfinite(arr))))
-        raise CloudFormatError(f"{what}: {bad} of {len(arr)} points have a NaN or infinite "
-                               "coordinate (drop them first)")
-    return arr
+# What `points_xyz` does with a row holding a NaN or an infinity (see there).
+NonFinite = Literal["refuse", "drop", "keep"]
+
+
+def points_xyz(xyz: ArrayLike, what: str, *, columns: int | None = 3, min_points: int = 0,
+               nonfinite: NonFinite = "refuse") -> np.ndarray:
+    """``xyz`` as an (N, columns) float64 array (no copy when it is one already): the
+    package's one check of the point arrays handed to it.
+
+    xyz: (N, 3) points in metres by default; (N, 2) xy in metres with ``columns=2``;
+    (N, D) of any D >= 1 with ``columns=None`` (features, in their own units).
+    what: the argument as the error names it ("simplify: xyz").
+    min_points: the fewest rows accepted (1 where nothing can be made of none: a k-means,
+    a picture).
+    nonfinite: what becomes of a row with a NaN or an infinity:
+
+    - "refuse": CloudFormatError, saying how many (a NaN must not reach a plane fit: an
+      SVD that does not converge says nothing of the cloud);
+    - "drop": the row is left out (a copy only then: the DEM takes what ground it gets);
+    - "keep": passed on as it is (a pure evaluation: NaN in gives NaN out).
+
+    CloudFormatError, naming ``what`` and the shape or dtype received, for another shape
+    (an (N, 6) array must not pass as 2N points, nor an (N,) one as N / 3), too few rows,
+    or values other than integers and floats (a bool mask, strings, objects)."""
+    try:
+        arr = np.asarray(xyz)
+    except ValueError as exc:  # (ragged nested lists)
+        raise CloudFormatError(f"{what}: not an array of numbers ({exc})") from None
+    width_ok = arr.ndim == 2 and (arr.shape[1] >= 1 if columns is None
+                                  else arr.shape[1] == columns)
+    if not width_ok or arr.shape[0] < min_points:
+        want = "(N, D)" if columns is None else f"(N, {columns})"
+        at_least = f" with N >= {min_points}" if min_points > 0 else ""
+        raise CloudFormatError(f"{what}: expected points of shape {want}{at_least}, "
+                               f"got {arr.shape}")
+    if arr.dtype.kind not in "iuf":
+        raise CloudFormatError(f"{what}: expected numbers, got dtype {arr.dtype}")
+    arr = arr.astype(np.float64, copy=False)
+    if nonfinite == "keep" or np.isfinite(arr).all():
+        return arr
+    finite = all_columns(np.isfinite(arr))  # (one column at a time: see the module's doc)
+    if nonfinite == "drop":
+        return arr[finite]
+    bad = len(arr) - int(np.count_nonzero(finite))
+    raise CloudFormatError(f"{what}: {bad} of {len(arr)} points have a NaN or infinite "
+                           "coordinate (drop them first)")
 
 
 def column_min(a: np.ndarray) -> np.ndarray:

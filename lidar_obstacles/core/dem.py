@@ -22,12 +22,12 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from lidar_obstacles.config import DemBuilderConfig, KrigingConfig, ThinningConfig
-from lidar_obstacles.core.arrays import (all_columns, column_max, column_min, tree_query,
+from lidar_obstacles.core.arrays import (column_max, column_min, points_xyz, tree_query,
                                          unique_ints)
 from lidar_obstacles.core.interpolate import (Variogram, degeneracy, interpolate,
                                               kriging_variogram, merge_coincident,
                                               neighbour_residual)
-from lidar_obstacles.errors import CloudFormatError, ConfigError
+from lidar_obstacles.errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -323,6 +323,12 @@ def ground_blunders(xyz: np.ndarray, *, max_area: float, rise: float,
 # 50 000-point message on the AHN corridor), so a rolling DEM refits it every 10 updates.
 _REFIT_EVERY = 10
 
+# The seed of the interpolation's random draws (the kriging variogram's sample pairs and
+# held-out samples, the RBF network's training points): fixed, so the same ground gives
+# the same DEM in every run. Passed as an int, not a generator: each fit draws afresh, so
+# a rolling DEM's fill does not depend on how many fits came before it.
+INTERPOLATION_SEED = 0
+
 
 class _VariogramCache:
     """The kriging variogram of a rolling DEM, refitted every ``_REFIT_EVERY`` uses or
@@ -336,7 +342,8 @@ class _VariogramCache:
     def get(self, xy: np.ndarray, z: np.ndarray, cfg: KrigingConfig) -> Variogram:
         """The cached variogram, or one fitted to samples xy (N, 2) m, z (N,) m."""
         if self._vg is None or self._uses >= _REFIT_EVERY or cfg != self._cfg:
-            self._vg, self._cfg, self._uses = kriging_variogram(xy, z, cfg=cfg), cfg, 0
+            self._vg = kriging_variogram(xy, z, cfg=cfg, rng=INTERPOLATION_SEED)
+            self._cfg, self._uses = cfg, 0
         self._uses += 1
         return self._vg
 
@@ -447,7 +454,7 @@ class _Cells:
                              np.column_stack([qx, qy]), kriging_cfg=cfg.kriging,
                              rbf_cfg=cfg.rbf, rbfnn_cfg=cfg.rbfnn,
                              idw_neighbours=cfg.dem.idw_neighbours, idw_power=cfg.dem.idw_power,
-                             variogram=vg)
+                             rng=INTERPOLATION_SEED, variogram=vg)
         self.fill[r0 + tr, c0 + tc] = values.astype(np.float32)
 
     def grid(self, reason: str = "") -> DemGrid:
@@ -460,16 +467,6 @@ class _Cells:
             reason = "no ground points in the grid"
         return DemGrid(elevation, interpolated, self.count.copy(),
                        self.origin_ij.astype(np.float64) * self.res, self.res, reason)
-
-
-def _check_xyz(xyz: np.ndarray) -> np.ndarray:
-    arr = np.asarray(xyz, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise CloudFormatError(f"DEM: expected ground points (N, 3), got shape {arr.shape}")
-    # one column at a time (numpy reduces an (N, 3) array row by row), and no copy when
-    # every point is finite, as the detector's ground always is: 1.2 -> 0.3 ms per message
-    finite = all_columns(np.isfinite(arr))
-    return arr if finite.all() else arr[finite]
 
 
 def _flat_reason(xyz: np.ndarray) -> str:
@@ -496,7 +493,7 @@ def build_dem(ground_xyz: np.ndarray, *, cfg: DemBuilderConfig,
     collinear) gives an empty or measured-only DEM with ``reason`` set, never an
     exception from Qhull.
     """
-    xyz = _check_xyz(ground_xyz)
+    xyz = points_xyz(ground_xyz, "build_dem: ground_xyz", nonfinite="drop")
     res = cfg.dem.resolution
     if len(xyz) == 0 and bounds is None:
         return empty_grid(res, "no ground points")
@@ -593,7 +590,7 @@ class RollingDem:
                stamp: float | None = None) -> None:
         """Add ground points (N, 3) float64 metres; vehicle_xy (2,) metres or None;
         stamp: the message time in seconds (kept as ``self.stamp``)."""
-        xyz = _check_xyz(ground_xyz)
+        xyz = points_xyz(ground_xyz, "DEM update: ground_xyz", nonfinite="drop")
         if stamp is not None:
             self.stamp = float(stamp)
         if len(xyz) == 0:

@@ -57,9 +57,9 @@ from typing import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lidar_obstacles.core.arrays import eigenvector3, symmetric_eigenvalues3, tree_query
+from lidar_obstacles.core.arrays import (eigenvector3, points_xyz, symmetric_eigenvalues3,
+                                         tree_query)
 from lidar_obstacles.config import FeaturesConfig
-from lidar_obstacles.errors import CloudFormatError
 
 NO_CLUSTERS = 0  # cluster code: no clear clusters, or too few neighbours / triangles
 PLANE = 1  # cluster code: one cluster of normals
@@ -123,7 +123,7 @@ def gaussian_map_features(xyz: np.ndarray, *, cfg: FeaturesConfig,
     neighbours + 1 points: no features (every point clusters 0).
     """
     t_start = time.perf_counter()
-    xyz = _check_cloud(xyz)
+    xyz = points_xyz(xyz, "gaussian_map_features: xyz")
     n = len(xyz)
     clusters = np.zeros(n, np.int8)
     timings = {"neighbours": 0.0, "gaussian_map": 0.0, "kmeans": 0.0}
@@ -184,19 +184,6 @@ def gaussian_map_features(xyz: np.ndarray, *, cfg: FeaturesConfig,
 
 
 # --------------------------------------------------------------------------- steps
-
-
-def _check_cloud(xyz: np.ndarray) -> np.ndarray:
-    arr = np.asarray(xyz)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise CloudFormatError(f"xyz: expected an (N, 3) array, got shape {arr.shape}")
-    if not np.issubdtype(arr.dtype, np.number):
-        raise CloudFormatError(f"xyz: expected numbers, got dtype {arr.dtype}")
-    arr = arr.astype(np.float64, copy=False)
-    if not np.isfinite(arr).all():
-        bad = int((~np.isfinite(arr)).any(axis=1).sum())
-        raise CloudFormatError(f"xyz: {bad} point(s) with NaN or inf coordinates")
-    return arr
 
 
 def _neighbours(xyz: np.ndarray, k: int) -> np.ndarray:

@@ -31,12 +31,16 @@ from scipy.linalg import solve_triangular
 from scipy.optimize import least_squares
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
-from lidar_obstacles.core.arrays import thread_pools, tree_query
+from lidar_obstacles.core.arrays import points_xyz, thread_pools, tree_query
 from lidar_obstacles.config import KrigingConfig, RbfConfig, RbfnnConfig
 from lidar_obstacles.errors import CloudFormatError
 
 METHODS = ("tin", "idw", "kriging", "rbf", "rbfnn")
 _CHUNK = 4096  # local systems solved per stacked call: bounds memory to a few MB
+# The seed of the fits' random draws (the variogram's sample pairs, the nugget's held-out
+# samples, the RBF network's training points) when the caller gives none: fixed, so the
+# same samples give the same surface in every run. None draws from fresh entropy instead.
+SAMPLING_SEED = 0
 
 
 # --------------------------------------------------------------------------- input
@@ -97,14 +101,14 @@ def neighbour_residual(xyz: np.ndarray, indptr: np.ndarray, neighbours: np.ndarr
 
 
 def _check(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray) -> tuple[np.ndarray, ...]:
-    xy = np.asarray(xy, dtype=np.float64)
+    """xy (N, 2) m, z (N,) m and query_xy (M, 2) m as float64, or CloudFormatError for
+    another shape. Not searched for NaN: the DEM hands only its finite ground."""
+    xy = points_xyz(xy, "interpolate: xy", columns=2, nonfinite="keep")
     z = np.asarray(z, dtype=np.float64)
-    q = np.asarray(query_xy, dtype=np.float64)
-    if xy.ndim != 2 or xy.shape[1] != 2 or z.shape != (len(xy),):
-        raise CloudFormatError(f"interpolate: expected xy (N, 2) and z (N,), got {xy.shape} "
-                               f"and {z.shape}")
-    if q.ndim != 2 or q.shape[1] != 2:
-        raise CloudFormatError(f"interpolate: expected query_xy (M, 2), got {q.shape}")
+    if z.shape != (len(xy),):
+        raise CloudFormatError(f"interpolate: expected z of shape ({len(xy)},) as xy "
+                               f"{xy.shape}, got {z.shape}")
+    q = points_xyz(query_xy, "interpolate: query_xy", columns=2, nonfinite="keep")
     return xy, z, q
 
 
@@ -254,7 +258,7 @@ class Variogram:
 
 
 def fit_variogram(xy: np.ndarray, z: np.ndarray, *, model: str, neighbours: int,
-                  rng: np.random.Generator | int | None = 0) -> Variogram:
+                  rng: np.random.Generator | int | None = SAMPLING_SEED) -> Variogram:
     """Fit a variogram to the samples' semivariances at the lags local kriging uses.
 
     Pairs: each of up to 3000 random samples with its 2*neighbours nearest (the short
@@ -422,7 +426,7 @@ def _ordinary(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray, vg: Variogram
 
 
 def choose_nugget(xy: np.ndarray, z: np.ndarray, vg: Variogram, *, neighbours: int,
-                  rng: np.random.Generator | int | None = 0) -> Variogram:
+                  rng: np.random.Generator | int | None = SAMPLING_SEED) -> Variogram:
     """The variogram ``vg`` with its nugget chosen by hold-out cross-validation.
 
     The binned fit's nugget is poor for LOCAL kriging: it comes from lags out to the sill
@@ -459,7 +463,7 @@ def choose_nugget(xy: np.ndarray, z: np.ndarray, vg: Variogram, *, neighbours: i
 
 
 def kriging_variogram(xy: np.ndarray, z: np.ndarray, *, cfg: KrigingConfig,
-                      rng: np.random.Generator | int | None = 0) -> Variogram:
+                      rng: np.random.Generator | int | None = SAMPLING_SEED) -> Variogram:
     """The variogram :func:`kriging` uses: shape, sill and range fitted to binned
     semivariances (:func:`fit_variogram`), nugget by cross-validation
     (:func:`choose_nugget`). xy: (N, 2) metres; z: (N,) metres."""
@@ -469,7 +473,7 @@ def kriging_variogram(xy: np.ndarray, z: np.ndarray, *, cfg: KrigingConfig,
 
 
 def kriging(xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray, *, cfg: KrigingConfig,
-            rng: np.random.Generator | int | None = 0,
+            rng: np.random.Generator | int | None = SAMPLING_SEED,
             variogram: Variogram | None = None) -> np.ndarray:
     """Ordinary kriging on the ``cfg.neighbours`` nearest samples of each query, with
     ``variogram`` (default: :func:`kriging_variogram` of the samples). xy: (N, 2) metres;
@@ -608,7 +612,7 @@ def interpolate(method: str, xy: np.ndarray, z: np.ndarray, query_xy: np.ndarray
                 rbfnn_cfg: RbfnnConfig = RbfnnConfig(), idw_neighbours: int = 8,
                 idw_power: float = 2.0, intensity: np.ndarray | None = None,
                 query_intensity: np.ndarray | None = None,
-                rng: np.random.Generator | int | None = 0,
+                rng: np.random.Generator | int | None = SAMPLING_SEED,
                 variogram: Variogram | None = None) -> np.ndarray:
     """Interpolate samples (xy (N, 2) metres, z (N,) metres) at query_xy (M, 2) metres.
 

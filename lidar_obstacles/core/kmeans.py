@@ -43,6 +43,11 @@ _warned: set[str] = set()  # reasons already logged: a stream of messages warns 
 # constant (ISPRS samples repeat the label in intensity, the AHN corridor has zeros).
 MIN_INTENSITY_LEVELS = 8
 
+# The seed of K-means++'s draws when the caller gives none: fixed, so the same features
+# give the same clusters in every run (kmeans_ground and simplify pass their own
+# generator, from their config's seed). None draws from fresh entropy instead.
+KMEANS_SEED = 0
+
 
 def standardise(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Zero-mean, unit-variance copy of each column: (t - mean) / std, std with N - 1.
@@ -170,7 +175,7 @@ def _kmeans_nd(x: np.ndarray, k: int, restarts: int, max_iter: int, tol: float,
 
 
 def kmeans(x: np.ndarray, k: int, *, restarts: int = 10, max_iter: int = 300,
-           tol: float = 1e-4, rng: np.random.Generator | int | None = 0) -> KmeansResult:
+           tol: float = 1e-4, rng: np.random.Generator | int | None = KMEANS_SEED) -> KmeansResult:
     """K-means (squared Euclidean) with K-means++ seeding, best of ``restarts`` runs.
 
     x: (N,) or (N, D) float features (standardise them first). k: clusters, 1 <= k <= N.
@@ -179,14 +184,11 @@ def kmeans(x: np.ndarray, k: int, *, restarts: int = 10, max_iter: int = 300,
     is below ``tol`` times the mean feature variance (scikit-learn's convention).
     Deterministic for a given seed / Generator. Raises CloudFormatError for bad input.
     """
-    arr = np.asarray(x, dtype=np.float64)
-    if arr.ndim == 1:
-        arr = arr[:, None]
-    if arr.ndim != 2 or len(arr) == 0:
-        raise CloudFormatError(f"kmeans: expected (N,) or (N, D) features with N > 0, got "
-                               f"shape {np.shape(x)}")
-    if not np.all(np.isfinite(arr)):
-        raise CloudFormatError("kmeans: features contain NaN or Inf")
+    arr = np.asarray(x)
+    one_feature = arr.ndim == 1
+    arr = points_xyz(arr[:, None] if one_feature else arr,
+                     "kmeans: x (one feature, as a column)" if one_feature else "kmeans: x",
+                     columns=None, min_points=1)
     if not 1 <= k <= len(arr):
         raise CloudFormatError(f"kmeans: k={k} must be between 1 and N={len(arr)}")
     if restarts < 1 or max_iter < 1:
@@ -224,7 +226,7 @@ class ElbowResult:
 
 def elbow_kmeans(x: np.ndarray, *, max_k: int = 10, restarts: int = 10, max_iter: int = 300,
                  tol: float = 1e-4, sample_size: int = 20_000,
-                 rng: np.random.Generator | int | None = 0) -> ElbowResult:
+                 rng: np.random.Generator | int | None = KMEANS_SEED) -> ElbowResult:
     """Run :func:`kmeans` for k = 1..max_k and return the clustering at the elbow.
 
     x: (N,) or (N, D) standardised features. The knee is found on log(SSE): the SSE of

@@ -13,6 +13,11 @@ import numpy as np
 
 from lidar_obstacles.core.arrays import column_mean, row_norm
 
+# The seed of the hypotheses' draws when the caller gives no generator: fixed, so the same
+# points give the same plane in every run (the ground filter and the obstacle detector
+# pass their own, from their config's seed).
+RANSAC_SEED = 0
+
 
 @dataclass(frozen=True)
 class Plane:
@@ -71,16 +76,18 @@ def required_trials(inlier_ratio: float, probability: float, sample_size: int = 
 
 
 def ransac_plane(xyz: np.ndarray, *, distance_threshold: float, probability: float = 0.99,
-                 max_trials: int = 1000, rng: np.random.Generator | None = None,
+                 max_trials: int = 1000,
+                 rng: np.random.Generator | int | None = RANSAC_SEED,
                  max_tilt_deg: float | None = None, batch: int = 64) -> RansacResult:
     """Best plane of (N, 3) points by inlier count, refitted on its inliers.
 
     xyz: (N, 3) float64 points, metres. distance_threshold: metres; a point is an inlier
     when its distance to the plane is below it. max_tilt_deg: degrees; only planes whose
-    normal is within this angle of vertical (ground, roofs) are hypotheses. Deterministic
-    for a given rng.
+    normal is within this angle of vertical (ground, roofs) are hypotheses. rng: the
+    generator (or seed) of the samples; None is RANSAC_SEED as well. Deterministic for a
+    given rng.
     """
-    rng = rng or np.random.default_rng(0)
+    rng = np.random.default_rng(RANSAC_SEED if rng is None else rng)
     n = len(xyz)
     if n < 3:
         return RansacResult(None, np.zeros(n, bool), 0, 0)

@@ -45,7 +45,8 @@ from typing import Callable, NamedTuple
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
-from lidar_obstacles.core.arrays import eigenvector3, symmetric_eigenvalues3, tree_query
+from lidar_obstacles.core.arrays import (eigenvector3, points_xyz, symmetric_eigenvalues3,
+                                         tree_query)
 from lidar_obstacles.config import SimplifyConfig
 from lidar_obstacles.core.ground import far_points
 from lidar_obstacles.core.interpolate import tin
@@ -108,15 +109,6 @@ class SimplifyResult:
 # --------------------------------------------------------------------------- normals
 
 
-def _check_xyz(xyz: np.ndarray, what: str) -> np.ndarray:
-    arr = np.asarray(xyz, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise CloudFormatError(f"{what}: expected (N, 3) points, got shape {np.shape(xyz)}")
-    if not np.all(np.isfinite(arr)):
-        raise CloudFormatError(f"{what}: points contain NaN or Inf")
-    return arr
-
-
 def _neighbourhood_pca(xyz: np.ndarray, neighbours: int) -> np.ndarray:
     """(N, 3) unit normals, oriented z >= 0, of the ``neighbours`` nearest points of each
     of xyz (N, 3) m (the point itself included, as in the paper's Table 2)."""
@@ -159,7 +151,7 @@ def pca_normals(xyz: np.ndarray, *, neighbours: int) -> np.ndarray:
     give some unit vector orthogonal to them. Raises CloudFormatError for NaN or a wrong
     shape.
     """
-    arr = _check_xyz(xyz, "pca_normals")
+    arr = points_xyz(xyz, "pca_normals: xyz")
     if neighbours < 1:
         raise ConfigError(f"pca_normals: neighbours={neighbours} must be >= 1")
     if len(arr) == 0:
@@ -212,8 +204,8 @@ def tin_raster_correlation(kept_xyz: np.ndarray, all_xyz: np.ndarray, *, cell: f
     to bound memory. Returns NaN when a set spans no surface (fewer than 3 points,
     collinear in XY) or a raster is constant. Raises CloudFormatError for bad arrays.
     """
-    kept = _check_xyz(kept_xyz, "tin_raster_correlation")
-    full = _check_xyz(all_xyz, "tin_raster_correlation")
+    kept = points_xyz(kept_xyz, "tin_raster_correlation: kept_xyz")
+    full = points_xyz(all_xyz, "tin_raster_correlation: all_xyz")
     if not cell > 0:
         raise ConfigError(f"tin_raster_correlation: cell={cell} must be > 0 m")
     if len(full) < 3 or len(kept) < 3:
@@ -398,7 +390,7 @@ def simplify(xyz: np.ndarray, *, cfg: SimplifyConfig, return_number: np.ndarray 
     """
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    arr = _check_xyz(xyz, "simplify")
+    arr = points_xyz(xyz, "simplify: xyz")
     n = len(arr)
     gen = np.random.default_rng(cfg.seed if rng is None else rng)
     clustered, note = _first_returns(return_number, n, cfg.first_returns)

@@ -42,7 +42,8 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from lidar_obstacles.errors import CloudFormatError, ConfigError
+from lidar_obstacles.core.arrays import points_xyz
+from lidar_obstacles.errors import ConfigError
 
 SCENES = ("mixed", "corridor", "urban", "forest")
 FRAMES = ("map", "sensor")
@@ -936,9 +937,7 @@ def scene_ground_height(scene_or_settings: "str | SimSettings", xy: np.ndarray) 
     terrain is defined on [-640, 640]^2 m and extended flat-wise outside.
     """
     scene = _resolve(scene_or_settings)
-    xy = np.asarray(xy, dtype=np.float64)
-    if xy.ndim != 2 or xy.shape[1] != 2:
-        raise CloudFormatError(f"xy: expected shape (N, 2), got {xy.shape}")
+    xy = points_xyz(xy, "scene_ground_height: xy", columns=2, nonfinite="keep")
     return scene.terrain.height(xy[:, 0], xy[:, 1])
 
 

@@ -371,6 +371,25 @@ def publish_obstacles(stage: DetectorStage, job: ObstacleWork, result: ObstacleR
                 det_stats["seconds"], det_stats["obstacles"])
 
 
+class _BagTimer:
+    """A timer on the bag's clock, as a node's ROS timer on the live one: due once every
+    `period_ns` of the clouds' stamps, and at the end of the bag whatever the time. A clock
+    that went back more than a period starts it again, as ROS's timers do."""
+
+    def __init__(self, period_ns: int) -> None:
+        self.period_ns = period_ns
+        self.next_ns: int | None = None
+
+    def due(self, stamp_ns: int, end: bool = False) -> bool:
+        """Whether it is due at a cloud stamped `stamp_ns` (`end`: the end of the bag)."""
+        if end or (self.next_ns is not None and stamp_ns >= self.next_ns):
+            self.next_ns = stamp_ns + self.period_ns
+            return True
+        if self.next_ns is None or stamp_ns + self.period_ns < self.next_ns:
+            self.next_ns = stamp_ns + self.period_ns  # (started, or started again)
+        return False
+
+
 class DemSchedule:
     """The DEM side of `replay`: every cloud goes into the rolling DEM; its messages are
     due at `dem.publish_rate` and `dem_builder`'s `/diagnostics` every second, on the
@@ -379,9 +398,8 @@ class DemSchedule:
 
     def __init__(self, stage: DemStage) -> None:
         self.stage = stage
-        self.period_ns = int(1e9 / stage.cfg.dem.publish_rate)
-        self.next_ns: int | None = None
-        self.diagnostics_ns: int | None = None
+        self.publish_timer = _BagTimer(int(1e9 / stage.cfg.dem.publish_rate))
+        self.diagnostics_timer = _BagTimer(DIAGNOSTICS_PERIOD_NS)
         self.counts = {"processed": 0, "points_in": 0, "points_out": 0}
         self.latencies: collections.deque[float] = collections.deque(maxlen=LATENCY_WINDOW)
         self.stamps: collections.deque[float] = collections.deque(maxlen=RATE_WINDOW)
@@ -393,18 +411,8 @@ class DemSchedule:
              ) -> list[tuple[str, int, Any]]:
         """The DEM messages and the diagnostics due at this cloud (all of them at the end
         of the bag)."""
-        items = []
-        # (a clock that went back more than a period starts the timers again, as ROS's do)
-        if (self.next_ns is None or stamp_ns + self.period_ns < self.next_ns) and not end:
-            self.next_ns = stamp_ns + self.period_ns
-        elif end or stamp_ns >= self.next_ns:  # type: ignore[operator]
-            self.next_ns = stamp_ns + self.period_ns
-            items = self.outputs(stamp_ns, record_ns)
-        if (self.diagnostics_ns is None or stamp_ns + DIAGNOSTICS_PERIOD_NS
-                < self.diagnostics_ns) and not end:
-            self.diagnostics_ns = stamp_ns + DIAGNOSTICS_PERIOD_NS
-        elif end or stamp_ns >= self.diagnostics_ns:  # type: ignore[operator]
-            self.diagnostics_ns = stamp_ns + DIAGNOSTICS_PERIOD_NS
+        items = self.outputs(stamp_ns, record_ns) if self.publish_timer.due(stamp_ns, end) else []
+        if self.diagnostics_timer.due(stamp_ns, end):
             items.append(("/diagnostics", record_ns, self.diagnostics(stamp_ns)))
         return items
 
@@ -482,147 +490,210 @@ def run_stages(reader: BagReader, *, topic: str | None, detector: DetectorStage 
     second of the bag's time and at its end (the detector's as a DetectorDiagnostics to
     drain).
     """
-    cloud_topic = reader.pointcloud_topic(topic)
-    odom = _odom_topics(reader)
-    use_odom = any(s is not None and s.cfg.use_odometry for s in (detector, dem))
-    passed = {t.topic for t in passed_through(reader)} if passthrough else set()
-    wanted = [cloud_topic, *odom, *sorted(passed.difference(odom))]
-    from lidar_obstacles.core.pipeline import ObstacleDetector  # noqa: F401 (fail early)
-    from lidar_obstacles.ros.node_base import PoseBuffer
-
-    poses = PoseBuffer()
-    # the same ground filter twice on every cloud is wasted: the DEM takes the detector's
-    share_ground = (detector is not None and dem is not None
-                    and dem.shares_ground_with(detector.cfg))
-    max_age = (detector or dem).cfg.odometry_max_age  # type: ignore[union-attr]
-    schedule = DemSchedule(dem) if dem is not None and not share_ground else None
-    if schedule is not None:
-        schedule.reject_reasons = stats.reject_reasons  # (the same clouds reach both)
-    stamps: collections.deque[float] = collections.deque(maxlen=RATE_WINDOW)
-    diagnostics_ns: int | None = None
-    dropped_reported = 0
-
-    def diagnostics_due(stamp_ns: int, record_ns: int, end: bool = False):
-        nonlocal diagnostics_ns, dropped_reported
-        if detector is None:
-            return
-        if (diagnostics_ns is None or stamp_ns + DIAGNOSTICS_PERIOD_NS
-                < diagnostics_ns) and not end:  # (as DemSchedule's: the clock went back)
-            diagnostics_ns = stamp_ns + DIAGNOSTICS_PERIOD_NS
-        elif end or stamp_ns >= diagnostics_ns:  # type: ignore[operator]
-            diagnostics_ns = stamp_ns + DIAGNOSTICS_PERIOD_NS
-            counts = stats.counts()
-            yield DEFERRED, record_ns, DetectorDiagnostics(
-                stamp_ns, messages.rate_hz(stamps), dict(stats.reject_reasons), counts,
-                dropped_reported)
-            dropped_reported = messages.dropped(counts)
-
-    # the times the bag spans: they may go back (its duration came out negative)
-    lo_ns = hi_ns = last_ns = None
-    warned: set[int | str] = set()  # (each warning once)
-    n_clouds = reader.count([cloud_topic])
-    bar = _progress(None, n_clouds, desc)
-    seen = 0  # clouds read (the bar counts nothing when it is off)
-    t_start = time.perf_counter()
+    run = _StageRun(reader, topic=topic, detector=detector, dem=dem, stats=stats, desc=desc,
+                    passthrough=passthrough, skip_malformed=skip_malformed)
     try:
-        for record in reader.records(wanted):
-            if record.topic in odom:
-                problem = poses.add(pose_of_odometry(reader.deserialize(record)))
-                if problem is not None and "odometry" not in warned:  # (left out, said once)
-                    bar.write(f"{desc}: warning: ignored {problem} (and any more such)",
-                              file=sys.stderr)
-                    warned.add("odometry")
-            if record.topic != cloud_topic:
-                raw = cdr_of_record(reader, record) if record.topic in passed else None
-                if raw is not None:
-                    yield record.topic, record.stamp_ns, raw
-                continue
-            bar.update(1)
-            seen += 1
-            msg = reader.deserialize(record)
-            stamp_ns = messages.stamp_ns_of(msg.header)
-            # the recording's span, by the bag's own times: a header stamp may be unset (0),
-            # which made a 5-cloud bag 70 years long and the replay 2e9 x real time
-            lo_ns = record.stamp_ns if lo_ns is None else min(lo_ns, record.stamp_ns)
-            hi_ns = record.stamp_ns if hi_ns is None else max(hi_ns, record.stamp_ns)
-            last_ns = stamp_ns
-            stamps.append(stamp_ns * 1e-9)
-            pose = poses.nearest(stamp_ns, max_age)
-            for kind, warning in enumerate((
-                    moving_frame_warning(msg.header.frame_id, pose, use_odom),
-                    detector and coarse_xyz_warning(msg, pose, detector.cfg),
-                    missing_frame_warning(msg.header.frame_id))):
-                if warning and kind not in warned:
-                    bar.write(f"{desc}: warning: {warning}", file=sys.stderr)
-                    warned.add(kind)
-            if use_odom and pose is None:
-                stats.rejected += 1
-                stats.reject_reasons[NO_POSE] = stats.reject_reasons.get(NO_POSE, 0) + 1
-                yield from diagnostics_due(stamp_ns, record.stamp_ns)
-                continue
-            t0 = time.perf_counter()
-            try:
-                deferred: list = []
-                # the points processed, as the nodes count them: the finite ones (width x
-                # height counted an organized cloud's NaN padding, its missing returns)
-                n_points = 0
-                if detector is not None:
-                    work = detector.start(msg, pose)
-                    n_points = int(np.count_nonzero(work.finite))
-                    deferred.append(ObstacleWork(record.stamp_ns, work))
-                    if share_ground:
-                        # the detector's ground is all the DEM needs: nothing to parse
-                        deferred.append(DemWork(
-                            work.stamp_ns, record.stamp_ns, work.frame_id,
-                            work.ground.vehicle_xyz, *work.dem_ground(),
-                            dict(stats.reject_reasons), points_in=n_points))
-                dem_items: list = []
-                if schedule is not None:
-                    dem_items, dem_points = schedule.add_cloud(msg, pose, stamp_ns,
-                                                               record.stamp_ns)
-                    n_points = n_points if detector is not None else dem_points
-            except CloudFormatError as exc:
-                if not skip_malformed:
-                    raise malformed_cloud(seen, cloud_topic, stamp_ns, exc) from None
-                stats.rejected += 1
-                count_reason(stats.reject_reasons, str(exc))
-                stats.last_reject = str(exc)
-                yield from diagnostics_due(stamp_ns, record.stamp_ns)
-                continue
-            restart = (deferred[0].work.ground.restart if detector is not None else
-                       schedule.stage.pipeline.last_restart if schedule is not None else "")
-            if restart:
-                stats.restarts += 1
-                if "restart" not in warned:
-                    bar.write(f"{desc}: warning: cloud {seen} started afresh, what was "
-                              f"remembered forgotten: {restart} (and any more such; "
-                              "counted in the summary's restarts)", file=sys.stderr)
-                    warned.add("restart")
-            if detector is None:  # (the detector's time is counted when its work is done)
-                stats.latencies.append(time.perf_counter() - t0)
-            stats.messages += 1
-            if stats.messages % 100 == 0:
-                release_free_memory()  # as the nodes do every 10 s
-            stats.points += n_points
-            for job in deferred:
-                yield DEFERRED, record.stamp_ns, job
-            yield from dem_items
-            yield from diagnostics_due(stamp_ns, record.stamp_ns)
-        if last_ns is not None:
-            yield from diagnostics_due(last_ns, last_ns, end=True)
-        if last_ns is not None and share_ground:
-            yield DEFERRED, last_ns, DemWork(last_ns, last_ns,
-                                             reject_reasons=dict(stats.reject_reasons))
-        elif last_ns is not None and schedule is not None:
-            yield from schedule.finish(last_ns, last_ns)
+        for record in reader.records(run.wanted):
+            if record.topic in run.odom:
+                run.add_pose(record)
+            if record.topic == run.cloud_topic:
+                yield from run.cloud(record)
+            elif record.topic in run.passed:
+                yield from run.copy(record)
+        yield from run.end()
     finally:
-        bar.close()
-        stats.wall_seconds = time.perf_counter() - t_start
-        if lo_ns is not None and hi_ns is not None:
+        run.close()
+
+
+class _StageRun:
+    """One run of `run_stages`: the stages' setup for the bag, and what it keeps from one
+    cloud to the next (the poses, the detector's diagnostics timer, the warnings given, the
+    bag's span)."""
+
+    def __init__(self, reader: BagReader, *, topic: str | None, detector: DetectorStage | None,
+                 dem: DemStage | None, stats: ReplayStats, desc: str, passthrough: bool,
+                 skip_malformed: bool) -> None:
+        self.reader, self.detector, self.stats = reader, detector, stats
+        self.desc, self.skip_malformed = desc, skip_malformed
+        self.cloud_topic = reader.pointcloud_topic(topic)
+        self.odom = _odom_topics(reader)
+        self.use_odom = any(s is not None and s.cfg.use_odometry for s in (detector, dem))
+        self.passed = {t.topic for t in passed_through(reader)} if passthrough else set()
+        self.wanted = [self.cloud_topic, *self.odom, *sorted(self.passed.difference(self.odom))]
+        from lidar_obstacles.core.pipeline import ObstacleDetector  # noqa: F401 (fail early)
+        from lidar_obstacles.ros.node_base import PoseBuffer
+
+        self.poses = PoseBuffer()
+        # the same ground filter twice on every cloud is wasted: the DEM takes the detector's
+        self.share_ground = (detector is not None and dem is not None
+                             and dem.shares_ground_with(detector.cfg))
+        self.max_age = (detector or dem).cfg.odometry_max_age  # type: ignore[union-attr]
+        self.schedule = DemSchedule(dem) if dem is not None and not self.share_ground else None
+        if self.schedule is not None:
+            self.schedule.reject_reasons = stats.reject_reasons  # (the same clouds reach both)
+        self.stamps: collections.deque[float] = collections.deque(maxlen=RATE_WINDOW)
+        self.diagnostics_timer = _BagTimer(DIAGNOSTICS_PERIOD_NS)  # the detector's
+        self.dropped_reported = 0  # clouds dropped as of the detector's last diagnostics
+        # the times the bag spans: they may go back (its duration came out negative)
+        self.lo_ns: int | None = None
+        self.hi_ns: int | None = None
+        self.last_ns: int | None = None  # the last cloud's header stamp
+        self.warned: set[int | str] = set()  # (each warning once)
+        self.bar = _progress(None, reader.count([self.cloud_topic]), desc)
+        self.seen = 0  # clouds read (the bar counts nothing when it is off)
+        self.t_start = time.perf_counter()
+
+    def add_pose(self, record) -> None:
+        """An odometry record into the poses (one that cannot be used: left out, said once)."""
+        problem = self.poses.add(pose_of_odometry(self.reader.deserialize(record)))
+        if problem is not None:
+            self._warn_once("odometry", f"ignored {problem} (and any more such)")
+
+    def copy(self, record) -> Iterator[tuple[str, int, Any]]:
+        """A record of a topic passed through, as it is (or rebuilt: `cdr_of_record`)."""
+        raw = cdr_of_record(self.reader, record)
+        if raw is not None:
+            yield record.topic, record.stamp_ns, raw
+
+    def cloud(self, record) -> Iterator[tuple[str, int, Any]]:
+        """One cloud through the stages: its work deferred and the DEM's items due, then
+        the detector's diagnostics if due. A cloud without a pose, or malformed (with
+        `skip_malformed`), is counted as rejected and only the diagnostics follow."""
+        self.bar.update(1)
+        self.seen += 1
+        msg = self.reader.deserialize(record)
+        stamp_ns = messages.stamp_ns_of(msg.header)
+        self._note_stamps(record.stamp_ns, stamp_ns)
+        pose = self.poses.nearest(stamp_ns, self.max_age)
+        self._warn_about_cloud(msg, pose)
+        if self.use_odom and pose is None:
+            self.stats.rejected += 1
+            self.stats.reject_reasons[NO_POSE] = self.stats.reject_reasons.get(NO_POSE, 0) + 1
+            yield from self._detector_diagnostics(stamp_ns, record.stamp_ns)
+            return
+        t0 = time.perf_counter()
+        try:
+            deferred, dem_items, n_points = self._start(msg, pose, stamp_ns, record.stamp_ns)
+        except CloudFormatError as exc:
+            if not self.skip_malformed:
+                raise malformed_cloud(self.seen, self.cloud_topic, stamp_ns, exc) from None
+            self.stats.rejected += 1
+            count_reason(self.stats.reject_reasons, str(exc))
+            self.stats.last_reject = str(exc)
+            yield from self._detector_diagnostics(stamp_ns, record.stamp_ns)
+            return
+        self._note_restart(deferred)
+        self._count(n_points, t0)
+        for job in deferred:
+            yield DEFERRED, record.stamp_ns, job
+        yield from dem_items
+        yield from self._detector_diagnostics(stamp_ns, record.stamp_ns)
+
+    def _note_stamps(self, record_ns: int, stamp_ns: int) -> None:
+        """A cloud's times: the recording's span, by the bag's own times (a header stamp
+        may be unset, 0, which made a 5-cloud bag 70 years long and the replay 2e9 x real
+        time), and its header stamp, for the rate and the end of the bag."""
+        self.lo_ns = record_ns if self.lo_ns is None else min(self.lo_ns, record_ns)
+        self.hi_ns = record_ns if self.hi_ns is None else max(self.hi_ns, record_ns)
+        self.last_ns = stamp_ns
+        self.stamps.append(stamp_ns * 1e-9)
+
+    def _warn_about_cloud(self, msg, pose: Pose | None) -> None:
+        """The warnings a cloud may call for (a moving frame without odometry, coordinates
+        too coarse for the detector, no frame), each once."""
+        for kind, warning in enumerate((
+                moving_frame_warning(msg.header.frame_id, pose, self.use_odom),
+                self.detector and coarse_xyz_warning(msg, pose, self.detector.cfg),
+                missing_frame_warning(msg.header.frame_id))):
+            if warning:
+                self._warn_once(kind, warning)
+
+    def _warn_once(self, key: int | str, text: str) -> None:
+        """`text` on stderr, above the progress bar, unless the warning `key` was given."""
+        if key not in self.warned:
+            self.bar.write(f"{self.desc}: warning: {text}", file=sys.stderr)
+            self.warned.add(key)
+
+    def _start(self, msg, pose: Pose | None, stamp_ns: int, record_ns: int
+               ) -> tuple[list, list, int]:
+        """The stages' work on a cloud now: the detector's first half (its second, and the
+        DEM's on its ground, deferred) and the DEM on its own ground. Returns the deferred
+        work, the DEM's items due and the cloud's points as the nodes count them: its
+        finite ones (width x height counted an organized cloud's NaN padding, its missing
+        returns). CloudFormatError for a cloud that cannot be used."""
+        deferred: list = []
+        n_points = 0
+        if self.detector is not None:
+            work = self.detector.start(msg, pose)
+            n_points = int(np.count_nonzero(work.finite))
+            deferred.append(ObstacleWork(record_ns, work))
+            if self.share_ground:
+                # the detector's ground is all the DEM needs: nothing to parse
+                deferred.append(DemWork(
+                    work.stamp_ns, record_ns, work.frame_id, work.ground.vehicle_xyz,
+                    *work.dem_ground(), dict(self.stats.reject_reasons), points_in=n_points))
+        dem_items: list = []
+        if self.schedule is not None:
+            dem_items, dem_points = self.schedule.add_cloud(msg, pose, stamp_ns, record_ns)
+            n_points = n_points if self.detector is not None else dem_points
+        return deferred, dem_items, n_points
+
+    def _note_restart(self, deferred: list) -> None:
+        """A cloud that started the stream afresh (forgetting what was remembered): counted,
+        and said once."""
+        restart = (deferred[0].work.ground.restart if self.detector is not None else
+                   self.schedule.stage.pipeline.last_restart if self.schedule is not None
+                   else "")
+        if restart:
+            self.stats.restarts += 1
+            self._warn_once("restart", f"cloud {self.seen} started afresh, what was "
+                            f"remembered forgotten: {restart} (and any more such; "
+                            "counted in the summary's restarts)")
+
+    def _count(self, n_points: int, t0: float) -> None:
+        """A cloud processed (its work begun at perf_counter `t0`) into the stats."""
+        if self.detector is None:  # (the detector's time is counted when its work is done)
+            self.stats.latencies.append(time.perf_counter() - t0)
+        self.stats.messages += 1
+        if self.stats.messages % 100 == 0:
+            release_free_memory()  # as the nodes do every 10 s
+        self.stats.points += n_points
+
+    def _detector_diagnostics(self, stamp_ns: int, record_ns: int, end: bool = False
+                              ) -> list[tuple[str, int, Any]]:
+        """The detector's `/diagnostics` if due at this cloud (every second of the bag's
+        time, and at its end), as a DetectorDiagnostics for `drain` to make once every
+        earlier cloud's work is done."""
+        if self.detector is None or not self.diagnostics_timer.due(stamp_ns, end):
+            return []
+        counts = self.stats.counts()
+        due = DetectorDiagnostics(stamp_ns, messages.rate_hz(self.stamps),
+                                  dict(self.stats.reject_reasons), counts,
+                                  self.dropped_reported)
+        self.dropped_reported = messages.dropped(counts)
+        return [(DEFERRED, record_ns, due)]
+
+    def end(self) -> Iterator[tuple[str, int, Any]]:
+        """The end of the bag (if it had a cloud): the detector's last diagnostics, and the
+        DEM as it stands (deferred when it takes the detector's ground)."""
+        if self.last_ns is None:
+            return
+        yield from self._detector_diagnostics(self.last_ns, self.last_ns, end=True)
+        if self.share_ground:
+            yield DEFERRED, self.last_ns, DemWork(
+                self.last_ns, self.last_ns, reject_reasons=dict(self.stats.reject_reasons))
+        elif self.schedule is not None:
+            yield from self.schedule.finish(self.last_ns, self.last_ns)
+
+    def close(self) -> None:
+        """The progress bar closed; the run's wall time and the bag's span into the stats."""
+        self.bar.close()
+        self.stats.wall_seconds = time.perf_counter() - self.t_start
+        if self.lo_ns is not None and self.hi_ns is not None:
             # A bag of n messages at rate r covers n periods, not n-1.
-            period = ((hi_ns - lo_ns) / max(stats.messages - 1, 1)
-                      if stats.messages > 1 else 1e8)
-            stats.bag_seconds = (hi_ns - lo_ns + period) * 1e-9
+            period = ((self.hi_ns - self.lo_ns) / max(self.stats.messages - 1, 1)
+                      if self.stats.messages > 1 else 1e8)
+            self.stats.bag_seconds = (self.hi_ns - self.lo_ns + period) * 1e-9
 
 
 def drain(item: tuple[str, int, Any], *, detector: DetectorStage | None = None,
