@@ -57,7 +57,7 @@ from lidar_obstacles.core.classes import (
     WIRE,
     vegetation_class,
 )
-from lidar_obstacles.core.ransac import ransac_plane
+from lidar_obstacles.core.ransac import RANSAC_SEED, ransac_plane
 
 PARALLEL_MIN = 20000  # query points x neighbours from which cKDTree runs on all cores
 MAX_NEIGHBOURS = 32  # of the shape neighbourhoods: more add little but cost time
@@ -1421,12 +1421,14 @@ def classify_obstacles(xyz: np.ndarray, ground: np.ndarray, height_above_ground:
     taken as tested), of which only those supported (`_supported_wires`) lead on;
     known_buildings: (B, 4) their building points (ObstacleClasses.buildings);
     context: (C, 3) m, points of earlier messages beyond a thin strip's edge, neighbours in
-    the shape features only (`shape_context`). rng draws the buildings' RANSAC samples.
+    the shape features only (`shape_context`). rng draws the buildings' RANSAC samples
+    (None: a generator seeded RANSAC_SEED, so that a cloud's classes are the same in every
+    run; the detector passes its own, seeded from its config).
 
     The steps are those of the module's docstring, each a function below: every point off
     the ground starts as vegetation by its height and keeps that class unless a step
     gives it another."""
-    rng = rng or np.random.default_rng(0)
+    rng = rng if rng is not None else np.random.default_rng(RANSAC_SEED)
     n = len(xyz)
     classes = np.full(n, GROUND, np.uint8)
     object_id = np.full(n, -1, np.int32)
