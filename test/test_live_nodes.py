@@ -985,7 +985,31 @@ def test_an_output_takes_qos_overrides(ros_node, how, tmp_path):
         assert _spin_until(ros_node, lambda: durability("clearance") is not None
                            and durability("obstacles") is not None, 30.0)
         assert durability("clearance") == DurabilityPolicy.TRANSIENT_LOCAL
-        assert durability("obstacles") == DurabilityPolicy.VOLATILE
+        # the other outputs keep theirs, those made after `clearance` too (one profile
+        # shared by them all took the override into every later one)
+        assert _spin_until(ros_node, lambda: durability("obstacle_edges") is not None, 30.0)
+        for topic in ("ground", "obstacles", "obstacle_markers", "obstacle_edges"):
+            assert durability(topic) == DurabilityPolicy.VOLATILE, topic
+    finally:
+        code, out = _stop(proc)
+    assert code == 0, out
+
+
+def test_an_override_of_the_dem_leaves_the_other_dem_topics_transient_local(ros_node):
+    # the contract's DEM topics are transient-local: an override of `dem` alone made
+    # `dem_image` and `dem_info` volatile too (one profile shared, overridden in place)
+    proc = _start("lidar_obstacles.scripts.dem_builder",
+                  "-p", f"qos_overrides.{NS}/dem.publisher.durability:=volatile")
+
+    def durability(topic: str):
+        infos = ros_node.get_publishers_info_by_topic(f"{NS}/{topic}")
+        return infos[0].qos_profile.durability if infos else None
+    try:
+        assert _spin_until(ros_node, lambda: None not in map(
+            durability, ("dem", "dem_image", "dem_info")), 30.0)
+        assert durability("dem") == DurabilityPolicy.VOLATILE
+        assert durability("dem_image") == durability("dem_info") == \
+            DurabilityPolicy.TRANSIENT_LOCAL
     finally:
         code, out = _stop(proc)
     assert code == 0, out

@@ -5,7 +5,7 @@ from __future__ import annotations
 from sensor_msgs.msg import PointCloud2
 
 from lidar_obstacles.config import CloudSimplifierConfig
-from lidar_obstacles.ros.node_base import PipelineNode, create_output, output_qos, run_node
+from lidar_obstacles.ros.node_base import PipelineNode, create_output, run_node
 from lidar_obstacles.ros.stages import SimplifierStage
 
 
@@ -15,8 +15,7 @@ class CloudSimplifierNode(PipelineNode):
     def __init__(self) -> None:
         super().__init__("cloud_simplifier")
         self.stage = SimplifierStage(self.cfg)
-        self.pubs = {"points_simplified": create_output(self, PointCloud2, "points_simplified",
-                                                        output_qos())}
+        self.pubs = {"points_simplified": create_output(self, PointCloud2, "points_simplified")}
         self.get_logger().info("ready")
 
 

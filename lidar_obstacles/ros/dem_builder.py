@@ -14,7 +14,7 @@ from std_srvs.srv import Trigger
 
 from lidar_obstacles.config import DemBuilderConfig
 from lidar_obstacles.errors import LidarObstaclesError
-from lidar_obstacles.ros.node_base import PipelineNode, create_output, output_qos, run_node
+from lidar_obstacles.ros.node_base import PipelineNode, create_output, run_node
 from lidar_obstacles.ros.stages import DemStage, Pose
 
 
@@ -26,12 +26,9 @@ class DemBuilderNode(PipelineNode):
     def __init__(self) -> None:
         super().__init__("dem_builder")
         self.stage = DemStage(self.cfg)
-        qos = output_qos(depth=1, transient_local=True)
-        self.pubs = {
-            "dem": create_output(self, PointCloud2, "dem", qos),
-            "dem_image": create_output(self, Image, "dem_image", qos),
-            "dem_info": create_output(self, MapMetaData, "dem_info", qos),
-        }
+        self.pubs = {name: create_output(self, msg_type, name, depth=1, transient_local=True)
+                     for name, msg_type in (("dem", PointCloud2), ("dem_image", Image),
+                                            ("dem_info", MapMetaData))}
         self._dirty = False  # clouds since the last publish
         self._due = False  # the publish timer fired since the last publish
         self._timer = self.create_timer(1.0 / self.cfg.dem.publish_rate, self._publish_due)

@@ -56,13 +56,18 @@ def output_qos(depth: int = 2, transient_local: bool = False) -> QoSProfile:
                                   else DurabilityPolicy.VOLATILE))
 
 
-def create_output(node: Node, msg_type, topic: str, qos: QoSProfile):
-    """A publisher of an output, whose QoS the user may override at start the ROS 2 way,
-    `-p qos_overrides./ns/clearance.publisher.durability:=transient_local` (a Nav2 costmap
-    layer subscribes transient-local); such parameters were accepted and did nothing."""
+def create_output(node: Node, msg_type, topic: str, *, depth: int = 2,
+                  transient_local: bool = False):
+    """A publisher of an output (`output_qos`), whose QoS the user may override at start
+    the ROS 2 way, `-p qos_overrides./ns/clearance.publisher.durability:=transient_local`
+    (a Nav2 costmap layer subscribes transient-local); such parameters were accepted and
+    did nothing. Each publisher gets a profile of its own: rclpy writes a topic's overrides
+    into the profile it is given, and one profile shared by a node's outputs carried them
+    to every output made after it (`/dem`'s durability made `/dem_image` volatile too)."""
     overridable = QoSOverridingOptions([QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH,
                                         QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY])
-    return node.create_publisher(msg_type, topic, qos, qos_overriding_options=overridable)
+    return node.create_publisher(msg_type, topic, output_qos(depth, transient_local),
+                                 qos_overriding_options=overridable)
 
 
 class PoseBuffer:

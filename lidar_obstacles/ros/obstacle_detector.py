@@ -7,7 +7,7 @@ from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
 from lidar_obstacles.config import ObstacleDetectorConfig
-from lidar_obstacles.ros.node_base import PipelineNode, create_output, output_qos, run_node
+from lidar_obstacles.ros.node_base import PipelineNode, create_output, run_node
 from lidar_obstacles.ros.stages import DetectorStage
 
 
@@ -19,14 +19,13 @@ class ObstacleDetectorNode(PipelineNode):
     def __init__(self) -> None:
         super().__init__("obstacle_detector")
         self.stage = DetectorStage(self.cfg)
-        qos = output_qos()
         self.pubs = {
-            "ground": create_output(self, PointCloud2, "ground", qos),
-            "obstacles": create_output(self, PointCloud2, "obstacles", qos),
-            "obstacle_markers": create_output(self, MarkerArray, "obstacle_markers", qos),
-            "clearance": create_output(self, OccupancyGrid, "clearance", qos),
+            "ground": create_output(self, PointCloud2, "ground"),
+            "obstacles": create_output(self, PointCloud2, "obstacles"),
+            "obstacle_markers": create_output(self, MarkerArray, "obstacle_markers"),
+            "clearance": create_output(self, OccupancyGrid, "clearance"),
             # Always there (`features.enabled` can be switched on at runtime); silent while off.
-            "obstacle_edges": create_output(self, PointCloud2, "obstacle_edges", qos),
+            "obstacle_edges": create_output(self, PointCloud2, "obstacle_edges"),
         }
         self.get_logger().info("ready")
 
