@@ -348,16 +348,14 @@ def main(argv: list[str] | None = None) -> int:
     it quietly, as SIGPIPE ends other tools: status 141, no traceback. Ctrl-C (SIGTERM)
     before the command has begun, while its modules are imported, ends it as during the
     command: one line, status 130 (143), no traceback."""
-    import os
-
     try:
         try:
             return _main(argv)
         finally:
-            sys.stdout.flush()  # here, where a reader gone is caught, not at exit
+            if sys.stdout is not None:  # (None: closed at the start)
+                sys.stdout.flush()  # here, where a reader gone is caught, not at exit
     except BrokenPipeError:
-        # stdout to /dev/null, so that Python's own flush at exit finds no pipe to fail on
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        _stdout_to_devnull()  # so that Python's own flush at exit finds no pipe to fail on
         return 141
     except BaseException as exc:  # before _main's own handler: no command to name yet
         terminated = _stopped(exc)
@@ -430,15 +428,39 @@ def _command(argv: list[str] | None) -> int:
     # ignores it again up to the exit).
     for stop in STOPS:
         signal.signal(stop, signal.SIG_IGN)
-    write_summary(summary)
+    try:
+        write_summary(summary)
+    except OSError as exc:
+        if isinstance(exc, BrokenPipeError):
+            raise  # (a reader of stdout gone: main's)
+        # stdout on a full disk, or closed (`>&-`): the outputs are in place, the summary
+        # is what was lost; one line, as for the machine's other errors
+        print(f"lidar-obstacles {args.command}: error: the summary could not be written to "
+              f"stdout: {exc.strerror or exc}", file=sys.stderr)
+        _stdout_to_devnull()  # (what it still holds would fail again at the exit's flush)
+        return 2
     return 0
 
 
 def write_summary(summary: dict) -> None:
-    """The command's JSON summary on stdout."""
+    """The command's JSON summary on stdout, flushed: OSError here when it cannot be
+    written (a full disk; stdout closed, which Python makes None)."""
+    import errno
     import json
 
+    if sys.stdout is None:
+        raise OSError(errno.EBADF, "stdout is closed")
     print(json.dumps(summary, indent=2, default=str))
+    sys.stdout.flush()
+
+
+def _stdout_to_devnull() -> None:
+    """stdout's descriptor onto /dev/null, so that the flush of what its buffer holds
+    succeeds (a reader gone, a full disk: nothing more can reach it anyway)."""
+    import os
+
+    if sys.stdout is not None:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
 def console() -> NoReturn:

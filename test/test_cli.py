@@ -122,6 +122,28 @@ def test_a_reader_that_stops_early_ends_the_command_quietly(args, tmp_path):
     assert proc.stderr == "" and proc.returncode == (0 if "--help" in args else 141)
 
 
+@pytest.mark.parametrize("stdout", ["full disk", "closed"])
+def test_a_summary_that_cannot_be_written_is_one_line_and_status_2(stdout, tmp_path):
+    # `lidar-obstacles ... > /dev/full` (or `>&-`): a traceback and status 1 came after the
+    # work; now one line naming it, status 2, and the bag written stays
+    bag = tmp_path / "bag"
+    args = [sys.executable, "-m", "lidar_obstacles.cli", "simulate", str(bag),
+            "--duration", "0.1", "--points", "100"]
+    if stdout == "full disk":
+        with open("/dev/full", "w") as full:
+            proc = subprocess.run(args, cwd=REPO, stdout=full, stderr=subprocess.PIPE,
+                                  text=True, timeout=120)
+        reason = "No space left on device"
+    else:
+        proc = subprocess.run(args, cwd=REPO, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.PIPE, text=True, timeout=120,
+                              preexec_fn=lambda: os.close(1))
+        reason = "stdout is closed"
+    assert (proc.returncode, proc.stderr) == (2, "lidar-obstacles simulate: error: the "
+                                              f"summary could not be written to stdout: {reason}\n")
+    assert bag.is_dir()
+
+
 # What pip's console script `lidar-obstacles` runs (where it is not installed)
 CONSOLE_SCRIPT = "import sys\nfrom lidar_obstacles.cli import console\nsys.exit(console())\n"
 
