@@ -263,8 +263,8 @@ def dem_comparison(xyz: np.ndarray, reference: np.ndarray, predicted: np.ndarray
 
     Returns {"grid": grid_errors with "coverage" (the share of the reference DEM's cells
     inside the data that the predicted DEM has), "check_points": grid_errors,
-    "reference_dem": DemGrid, "predicted_dem": DemGrid} (the grids for pictures; not
-    JSON)."""
+    "reference_dem": DemGrid, "predicted_dem": DemGrid, "inside": (rows, cols) bool, the
+    cells compared} (the grids for pictures; not JSON)."""
     from lidar_obstacles.core.dem import build_dem
     from lidar_obstacles.core.metrics import GROUND_CODES, grid_errors, grid_values_at
     from lidar_obstacles.core.pipeline import bare_earth_of
@@ -292,7 +292,8 @@ def dem_comparison(xyz: np.ndarray, reference: np.ndarray, predicted: np.ndarray
     # both have, and a ground lost over a whole area showed only in a smaller n
     n_ref = int(np.isfinite(ref_cells).sum())
     grid["coverage"] = grid["n"] / n_ref if n_ref else None
-    out: dict[str, Any] = {"grid": grid, "reference_dem": ref_dem, "predicted_dem": pred_dem}
+    out: dict[str, Any] = {"grid": grid, "reference_dem": ref_dem, "predicted_dem": pred_dem,
+                           "inside": inside}
     if len(held):
         est = grid_values_at(pred_dem.elevation, xyz[held, :2],
                              resolution=pred_dem.resolution, origin=tuple(pred_dem.origin))
@@ -413,7 +414,9 @@ def _report_files(out: Path, metrics: dict, xyz, ref, pred, dem, latencies, name
             images["DEM hillshade"] = report.hillshade_png(
                 p.elevation, p.resolution, tuple(p.origin), out / "dem_hillshade.png",
                 title="DEM from the predicted ground")
-            err = p.elevation - dem["reference_dem"].elevation
+            # the cells `dem.grid`'s figures are of: inside the data (the interpolation
+            # beyond the survey is no ground's error, and the picture said otherwise)
+            err = np.where(dem["inside"], p.elevation - dem["reference_dem"].elevation, np.nan)
             if np.isfinite(err).any():
                 images["DEM error"] = report.dem_error_png(
                     err, p.resolution, tuple(p.origin), out / "dem_error.png",

@@ -79,6 +79,41 @@ def test_dem_errors_say_what_share_of_the_survey_they_cover(tmp_path, monkeypatc
     assert grid["n"] == pytest.approx(grid["coverage"] * 3600, abs=1)
 
 
+def test_the_reports_dem_error_picture_shows_the_cells_its_figures_are_of(tmp_path,
+                                                                          monkeypatch):
+    """An L-shaped survey: the DEMs fill part of the empty quadrant, which no figure counts
+    (no ground's error is there). The report's picture of the errors showed those cells
+    too, and its title's RMSE and cell count contradicted the table beside it."""
+    import laspy
+
+    from lidar_obstacles import evaluate as ev
+    from lidar_obstacles import report
+
+    g = np.arange(0.25, 40, 0.5)
+    x, y = (a.ravel() for a in np.meshgrid(g, g))
+    keep = (x < 20) | (y < 20)
+    x, y = x[keep], y[keep]
+    las = laspy.LasData(laspy.LasHeader(point_format=1, version="1.2"))
+    las.x, las.y, las.z = x, y, 0.1 * x + 0.05 * np.sin(y)
+    las.classification = np.full(len(x), 2)
+    las.write(str(tmp_path / "ell.las"))
+
+    def most_of_it_ground(inp, cfg, progress=False):
+        for cloud in inp.clouds:  # (a strip lost: the two DEMs differ somewhere)
+            cloud.predicted = np.where(np.abs(cloud.xyz[:, 1] - 10) < 1, 1, 2).astype(np.uint8)
+        return []
+
+    drawn = []
+    draw = report.dem_error_png
+    monkeypatch.setattr(ev, "run_detector", most_of_it_ground)
+    monkeypatch.setattr(report, "dem_error_png",
+                        lambda err, *a, **k: drawn.append(np.asarray(err)) or draw(err, *a, **k))
+    grid = ev.evaluate(tmp_path / "ell.las", report_dir=tmp_path / "report")["dem"]["grid"]
+    (err,) = drawn
+    assert np.isfinite(err).sum() == grid["n"] < 1600
+    assert np.sqrt(np.nanmean(err ** 2)) == pytest.approx(grid["rmse_m"], rel=1e-6)
+
+
 def test_safety_counts_every_raised_object_put_in_ground(tmp_path, monkeypatch):
     """A shed 3 m high taken for ground is what a UAV must never be told, whatever its
     class; low vegetation within a metre of the ground is not counted."""
