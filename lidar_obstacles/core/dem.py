@@ -351,6 +351,26 @@ class _VariogramCache:
 _CELL_BYTES = 32  # a _Cells cell: count 4, sums 3 x 8, interpolated layer 4
 
 
+class DemTooLarge(ConfigError):
+    """The DEM of the whole survey (`RollingDem`'s `whole`) would pass `dem.max_cells`
+    (`too_large_message` says by how much, once the survey's span is known)."""
+
+
+def too_large_message(lo: np.ndarray, hi: np.ndarray, cfg: DemBuilderConfig) -> str:
+    """What to change for a survey whose points span lo..hi ((2,) x, y m) to fit in one
+    DEM: the cells that cover it at `dem.resolution`, against `dem.max_cells`, and the
+    resolution at which it would fit."""
+    res, limit = cfg.dem.resolution, cfg.dem.max_cells
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    span = hi - lo
+    cells = int(np.prod(np.floor(hi / res) - np.floor(lo / res) + 1))
+    fits = float(np.sqrt(span[0] * span[1] / limit))
+    return (f"the survey spans {span[0]:.0f} x {span[1]:.0f} m: {cells} cells of "
+            f"dem.resolution {res:g} m, over dem.max_cells = {limit}; raise it to {cells} "
+            f"(~{_CELL_BYTES} bytes a cell: {cells * _CELL_BYTES / 1e9:.2g} GB) or coarsen "
+            f"dem.resolution to about {fits:.2g} m")
+
+
 class _Cells:
     """Per-cell sums of a grid window: count, sum of z and of x, y offsets from the
     cell centre, plus the interpolated layer. ``origin_ij`` is the global integer index
@@ -568,14 +588,12 @@ class RollingDem:
                     return self._cells
                 lo, hi = np.minimum(lo, old_lo), np.maximum(hi, old_hi)
             # grow in steps of 64 cells so a growing flight does not copy every message
+            # (the exact size where the steps alone would pass dem.max_cells)
             size = -(-(hi - lo) // 64) * 64
+            if size[0] * size[1] > self.cfg.dem.max_cells:
+                size = hi - lo
             if size[0] * size[1] > self.cfg.dem.max_cells and self.whole:
-                span = (hi - lo) * res
-                raise ConfigError(
-                    f"the ground spans {span[0]:.0f} x {span[1]:.0f} m: "
-                    f"{int(size[0]) * int(size[1])} cells of dem.resolution {res:g} m, over "
-                    f"dem.max_cells = {self.cfg.dem.max_cells}; raise it (~{_CELL_BYTES} "
-                    f"bytes a cell) or coarsen dem.resolution")
+                raise DemTooLarge("the ground spans more than dem.max_cells")
             if size[0] * size[1] > self.cfg.dem.max_cells:
                 origin, shape = self._window(xyz, vehicle_xy)
             else:

@@ -1087,12 +1087,14 @@ def export_dem(src: Path, out: Path, *, topic: str | None = None,
                     "square around the last position; set it to 0 for the whole survey",
                     dem_cfg.dem.extent, params_file)
     stats = ReplayStats()
-    stage = DemStage(dem_cfg, whole=True)  # (over dem.max_cells: an error, said early)
+    stage = DemStage(dem_cfg, whole=True)
     with BagReader(src) as reader:
         bag_crs = read_crs(reader)
         for _ in run_stages(reader, topic=topic, detector=None, dem=stage, stats=stats,
                             desc="export-dem", skip_malformed=skip_malformed):
             pass
+    if stage.too_large:  # (over dem.max_cells, the rest of the bag was only measured)
+        raise ConfigError(stage.too_large_message())
     if stats.messages == 0:  # (said as replay says it, not as "no ground")
         raise BagError(f"no cloud of {src} could be processed "
                        f"({stats.rejected} rejected: {stats.reject_reasons})")

@@ -14,8 +14,9 @@ import numpy as np
 
 from lidar_obstacles.config import (CloudSimplifierConfig, DemBuilderConfig, NodeInputConfig,
                                     ObstacleDetectorConfig, PointsNodeConfig)
-from lidar_obstacles.core.arrays import all_columns
+from lidar_obstacles.core.arrays import all_columns, column_max, column_min
 from lidar_obstacles.core.classes import GROUND, NOISE
+from lidar_obstacles.core.dem import DemTooLarge, too_large_message
 from lidar_obstacles.core.pipeline import (DemPipeline, GroundStep, ObstacleDetector,
                                            ObstacleResult)
 from lidar_obstacles.errors import CloudFormatError
@@ -329,9 +330,15 @@ class DemStage:
     """`dem_builder`'s work: feed messages into the rolling DEM, publish it on demand."""
 
     def __init__(self, cfg: DemBuilderConfig, *, whole: bool = False) -> None:
-        """whole: the DEM of the whole bag, or ConfigError (`export-dem`; DemPipeline)."""
+        """whole: the DEM of the whole bag (`export-dem`), or, over `dem.max_cells`,
+        none: `too_large` is set, the clouds after are only measured (`span`), and
+        `too_large_message` names the survey's span."""
         self.cfg = cfg
         self.pipeline = DemPipeline(cfg, whole=whole)
+        self.whole = whole
+        self.too_large = False
+        # the (2,) x, y m bounds of every cloud's points, with `whole`
+        self.span: tuple[np.ndarray, np.ndarray] | None = None
         self.frame_id = "map"
         self.last_stamp_ns = 0
         # the DEM at its held-out check points, as of the last `dem_outputs`
@@ -371,6 +378,30 @@ class DemStage:
         self.frame_id = prep.frame_id
         self.last_stamp_ns = prep.stamp_ns
         vehicle = DetectorStage.vehicle(pose, prep.frame_id)
+        if self.whole and len(prep.xyz):
+            lo, hi = column_min(prep.xyz[:, :2]), column_max(prep.xyz[:, :2])
+            self.span = ((lo, hi) if self.span is None else
+                         (np.minimum(lo, self.span[0]), np.maximum(hi, self.span[1])))
+        if self.too_large:  # (the DEM given up: only the span is still wanted)
+            return {"points_in": len(prep.points), "points_out": 0, "timings": {},
+                    "seconds": time.perf_counter() - t0, "restart": ""}
+        try:
+            timings = self._add(prep, vehicle)
+        except DemTooLarge:
+            self.too_large = True
+            timings = {}
+        return {"points_in": len(prep.points), "points_out": self.pipeline.last_added,
+                "timings": timings, "seconds": time.perf_counter() - t0,
+                "restart": self.pipeline.last_restart}
+
+    def too_large_message(self) -> str:
+        """Why the whole survey's DEM was not made (`too_large`): its span and what fits."""
+        assert self.span is not None
+        return too_large_message(*self.span, self.cfg)
+
+    def _add(self, prep, vehicle: np.ndarray | None) -> dict:
+        """One prepared message's ground into the DEM (`dem.ground_source`); its timings."""
+        cfg = self.cfg
         if cfg.dem.ground_source == "input":
             hag = _attr(prep.points, "height_above_ground")
             if hag is None:  # (a raw cloud would all go into the DEM, crowns and roofs)
@@ -379,18 +410,14 @@ class DemStage:
                                        "points:=ground)")
             classes = _attr(prep.points, "class")
             ground = slice(None) if classes is None else classes == GROUND
-            timings = self.pipeline.add_ground(prep.xyz[ground], stamp=prep.stamp_ns * 1e-9,
-                                               vehicle_xyz=vehicle,
-                                               height_above_ground=hag[ground],
-                                               frame=prep.frame_id)
-        else:
-            timings = self.pipeline.process(prep.xyz, stamp=prep.stamp_ns * 1e-9,
+            return self.pipeline.add_ground(prep.xyz[ground], stamp=prep.stamp_ns * 1e-9,
                                             vehicle_xyz=vehicle,
-                                            intensity=_attr(prep.points, "intensity"),
+                                            height_above_ground=hag[ground],
                                             frame=prep.frame_id)
-        return {"points_in": len(prep.points), "points_out": self.pipeline.last_added,
-                "timings": timings, "seconds": time.perf_counter() - t0,
-                "restart": self.pipeline.last_restart}
+        return self.pipeline.process(prep.xyz, stamp=prep.stamp_ns * 1e-9,
+                                     vehicle_xyz=vehicle,
+                                     intensity=_attr(prep.points, "intensity"),
+                                     frame=prep.frame_id)
 
     def add_ground(self, ground_xyz: np.ndarray, ground_hag: np.ndarray, *, stamp_ns: int,
                    frame_id: str, points_in: int, vehicle_xyz: np.ndarray | None = None
