@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -664,19 +665,24 @@ def test_export_dem_of_more_than_max_cells_is_an_error_not_a_window(sim_bag, tmp
     params.write_text("/**:\n  ros__parameters:\n    dem.max_cells: 2000\n")
     res = cli_subprocess("export-dem", sim_bag, tmp_path / "dem.tif", "--params-file", params)
     # the span of the whole survey, not of the ground seen when the grid grew too large
-    # (the first clouds': 100 x 100 m said of a 135 x 303 m survey)
+    # (it named the first clouds' ground, rounded up to blocks of 64 cells)
     with BagReader(sim_bag) as reader:
         xy = np.concatenate([np.column_stack([p["x"], p["y"]]) for p in (
             read_points(reader.deserialize(r)) for r in reader.records(["/points"]))])
     lo, hi = np.nanmin(xy, axis=0), np.nanmax(xy, axis=0)
     cells = int(np.prod(np.floor(hi) - np.floor(lo) + 1))
-    fits = np.sqrt(np.prod(hi - lo) / 2000)
-    assert (res.returncode, res.stderr) == (2, (
-        f"lidar-obstacles export-dem: error: the survey spans {hi[0] - lo[0]:.0f} x "
-        f"{hi[1] - lo[1]:.0f} m: {cells} cells of dem.resolution 1 m, over dem.max_cells = "
-        f"2000; raise it to {cells} (~32 bytes a cell: {cells * 32 / 1e9:.2g} GB) or "
-        f"coarsen dem.resolution to about {fits:.2g} m\n"))
+    said = re.fullmatch(
+        r"lidar-obstacles export-dem: error: the survey spans (\d+) x (\d+) m: (\d+) cells of "
+        r"dem.resolution 1 m, over dem.max_cells = 2000; raise it to (\d+) \(~32 bytes a "
+        r"cell: \S+ GB\) or coarsen dem.resolution to ([\d.]+) m\n", res.stderr)
+    assert res.returncode == 2 and said, res.stderr
+    assert [int(v) for v in said.groups()[:4]] == [*np.round(hi - lo).astype(int), cells, cells]
     assert list(tmp_path.iterdir()) == [params]
+    # and what it says works: at the resolution it names, the DEM fits
+    params.write_text("/**:\n  ros__parameters:\n    dem.max_cells: 2000\n"
+                      f"    dem.resolution: {said.group(5)}\n")
+    res = cli_subprocess("export-dem", sim_bag, tmp_path / "dem.tif", "--params-file", params)
+    assert res.returncode == 0, res.stderr
     # the live node's DEM still rolls on as a window (a flight has no end)
     from lidar_obstacles.config import DemBuilderConfig, replace
     from lidar_obstacles.core.dem import RollingDem

@@ -364,11 +364,13 @@ def too_large_message(lo: np.ndarray, hi: np.ndarray, cfg: DemBuilderConfig) -> 
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
     span = hi - lo
     cells = int(np.prod(np.floor(hi / res) - np.floor(lo / res) + 1))
-    fits = float(np.sqrt(span[0] * span[1] / limit))
+    fits = float(np.sqrt(span[0] * span[1] / limit))  # (the edge cells aside)
+    digits = 2 - int(np.ceil(np.log10(fits)))  # rounded up, to two significant figures
+    fits = float(np.ceil(fits * 10.0 ** digits) / 10.0 ** digits)
     return (f"the survey spans {span[0]:.0f} x {span[1]:.0f} m: {cells} cells of "
             f"dem.resolution {res:g} m, over dem.max_cells = {limit}; raise it to {cells} "
             f"(~{_CELL_BYTES} bytes a cell: {cells * _CELL_BYTES / 1e9:.2g} GB) or coarsen "
-            f"dem.resolution to about {fits:.2g} m")
+            f"dem.resolution to {fits:g} m")
 
 
 class _Cells:
