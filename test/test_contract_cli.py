@@ -3,6 +3,7 @@ it says and says where, `play --loop` plays a bag again and again until Ctrl-C."
 from __future__ import annotations
 
 import json
+import os
 import re
 import signal
 import subprocess
@@ -193,3 +194,20 @@ def test_dem_builder_on_sim_time_publishes_a_dem_while_play_clock_plays(ros_node
         ros_node.destroy_subscription(sub)
         rc, log = _stop(dem)
     assert rc == 0, log[-3000:]
+
+
+@pytest.mark.parametrize("points, said", [(50_000, 1), (2000, 0)])
+def test_play_says_when_its_clouds_need_the_large_data_profile(tmp_path, points, said):
+    bag = tmp_path / "flight"
+    sim = _cli("simulate", bag, "--duration", "0.2", "--points", points)
+    assert sim.wait(timeout=120) == 0, sim.communicate()[1]
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")}
+    proc = subprocess.run(
+        [sys.executable, "-c", "import sys; from pathlib import Path; from lidar_obstacles.ros "
+         "import offline; offline.play(Path(sys.argv[1]), settle_s=0.1, wait_s=0.5)", str(bag)],
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.count("play: clouds of ") == said, proc.stderr
+    if said:
+        assert "on /points, over Fast DDS's 512 kB shared-memory segment" in proc.stderr

@@ -776,6 +776,32 @@ def test_clouds_the_busy_node_drops_are_counted(ros_node, monkeypatch):
         node.destroy_node()
 
 
+@pytest.mark.parametrize("profile", [None, "FASTRTPS_DEFAULT_PROFILES_FILE",
+                                     "FASTDDS_DEFAULT_PROFILES_FILE"])
+def test_clouds_over_fastdds_shared_memory_segment_are_said_once(ros_node, profile,
+                                                                 monkeypatch, capfd):
+    # Clouds over 512 kB without a profile: best-effort subscribers lost most of them and
+    # odometry beside them came up to 1.4 s late, without a word. The node says it on its
+    # first cloud, once; not when a profile is named, nor of small clouds.
+    from lidar_obstacles.ros import messages
+    from lidar_obstacles.ros.obstacle_detector import ObstacleDetectorNode
+
+    for name in messages.PROFILE_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    if profile is not None:
+        monkeypatch.setenv(profile, str(REPO / "config" / "fastdds_large_data.xml"))
+    node = ObstacleDetectorNode()
+    try:
+        for n in (50_000, 1000, 50_000):  # 600 kB, 12 kB, 600 kB
+            pts = np.zeros(n, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+            node._on_points(messages.cloud(pts, messages.header(10**9, "map")))
+    finally:
+        node.destroy_node()
+    said = capfd.readouterr().err.count("over Fast DDS's 512 kB shared-memory segment")
+    assert said == (1 if profile is None else 0)
+    assert messages.large_cloud_hint(512 * 1024, "/points") is None
+
+
 def test_a_cloud_waits_for_its_late_odometry_pose(ros_node):
     # Live, the pose of a cloud can come after it (the executor was busy, a best-effort
     # pose was lost and the next one is on its way): with use_odometry the cloud waits

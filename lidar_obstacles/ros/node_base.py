@@ -231,6 +231,7 @@ class PipelineNode(Node):
         self._inbox: collections.deque[PointCloud2] = collections.deque(
             maxlen=self.cfg.input.depth)  # (read-only: fixed for the node's life)
         self._inbox_lock = threading.Lock()
+        self._size_checked = False  # the first cloud's size (`messages.large_cloud_hint`)
         self._wake = threading.Event()
         self._stopping = False
         self.stop_now = False  # set: stop without waiting for the cloud in hand
@@ -285,7 +286,13 @@ class PipelineNode(Node):
 
     # ---------------------------------------------------------------- processing
     def _on_points(self, msg: PointCloud2) -> None:
-        """The executor's callback: the cloud goes to the inbox, nothing more."""
+        """The executor's callback: the cloud goes to the inbox, nothing more (the first
+        one's size is checked against Fast DDS's transport, once)."""
+        if not self._size_checked:
+            self._size_checked = True
+            hint = messages.large_cloud_hint(len(msg.data), self.resolve_topic_name("points"))
+            if hint is not None:
+                self.get_logger().warning(hint)
         self.stats["received"] += 1
         self.recv_times.append(time.monotonic())
         with self._inbox_lock:

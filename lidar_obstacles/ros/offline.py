@@ -1280,6 +1280,11 @@ def play(src: Path, *, rate: float = 1.0, loop: bool = False, topics: list[str] 
             raise BagError(f"bag {src} has none of the requested topics")
         if reader.count([t.topic for t in infos]) == 0:
             raise BagError(f"bag {src} holds no message to play")
+        for t in infos:  # (each cloud topic's first cloud, as the nodes check theirs)
+            first = next(reader.records([t.topic]), None) if t.msgtype == POINTCLOUD2 else None
+            hint = first and messages.large_cloud_hint(len(first.raw), t.topic)
+            if hint:
+                log.warning("play: %s", hint)
         start_ns = 0  # the first record's time: /clock's until playing starts
         if clock_hz is not None:
             start_ns = next(reader.records([t.topic for t in infos])).stamp_ns
