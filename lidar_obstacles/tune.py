@@ -44,8 +44,10 @@ LOWER_IS_BETTER = {"total_error"}  # objectives the score negates
 def parse_budget(text: str) -> float:
     """'90s', '10m', '1.5h' or plain seconds -> seconds. ConfigError otherwise."""
     m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([smh]?)\s*", text)
-    if not m or float(m.group(1)) <= 0:
+    if not m:
         raise ConfigError(f"budget '{text}': expected a duration like 90s, 10m or 1h")
+    if float(m.group(1)) <= 0:
+        raise ConfigError(f"budget '{text}': must be more than 0 (no trial would run)")
     return float(m.group(1)) * {"": 1, "s": 1, "m": 60, "h": 3600}[m.group(2)]
 
 

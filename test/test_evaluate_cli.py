@@ -571,3 +571,20 @@ def test_evaluate_dem_is_compared_as_dem_builder_builds_it_inside_the_survey():
     grid = m["dem"]["grid"]
     assert grid["rmse_m"] < 0.1, grid
     assert 2000 < grid["n"] < 3500, grid  # cells holding a point, not the whole square
+
+
+@pytest.mark.parametrize("text, seconds, error", [
+    ("90s", 90.0, None), ("10m", 600.0, None), ("1.5h", 5400.0, None), ("45", 45.0, None),
+    ("0s", None, "budget '0s': must be more than 0 (no trial would run)"),
+    ("ten minutes", None, "budget 'ten minutes': expected a duration like 90s, 10m or 1h"),
+])
+def test_tune_budget_is_a_positive_duration_said_so_when_not(text, seconds, error):
+    from lidar_obstacles.errors import ConfigError
+    from lidar_obstacles.tune import parse_budget
+
+    if error is None:
+        assert parse_budget(text) == seconds
+    else:
+        with pytest.raises(ConfigError) as exc:
+            parse_budget(text)
+        assert str(exc.value) == error

@@ -42,6 +42,26 @@ def test_a_truncated_las_file_is_named_as_such(tmp_path, records_left):
     assert len(read_las(full).points) == 38010  # (the whole file is read as before)
 
 
+@pytest.mark.parametrize("major, minor, ok", [(1, 2, True), (1, 0, True), (9, 2, False),
+                                               (1, 7, False), (0, 2, False)])
+def test_a_las_version_of_none_of_1_0_to_1_4_is_a_corrupt_header(tmp_path, major, minor, ok):
+    # laspy read a file whose header said LAS 9.2 without a word
+    las = laspy.LasData(laspy.LasHeader(point_format=1, version="1.2"))
+    las.x, las.y, las.z = np.arange(5.0), np.arange(5.0), np.zeros(5)
+    path = tmp_path / "v.las"
+    las.write(str(path))
+    raw = bytearray(path.read_bytes())
+    raw[24:26] = bytes([major, minor])  # the header's version major, minor
+    path.write_bytes(bytes(raw))
+    if ok:
+        assert len(read_las(path).points) == 5
+    else:
+        said = (f"cannot read LAS file {path}: its header says LAS {major}.{minor}, none of "
+                "1.0-1.4: the header is corrupt")
+        with pytest.raises(LasError, match=f"^{re.escape(said)}$"):
+            read_las(path)
+
+
 UTM32 = ('PROJCS["WGS 84 / UTM zone 32N",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",'
          '6378137,298.257223563,AUTHORITY["EPSG","7030"]],AUTHORITY["EPSG","6326"]],'
          'PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433],AUTHORITY["EPSG","4326"]],'
