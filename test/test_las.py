@@ -43,7 +43,7 @@ def test_a_truncated_las_file_is_named_as_such(tmp_path, records_left):
 
 
 @pytest.mark.parametrize("major, minor, ok", [(1, 2, True), (1, 0, True), (9, 2, False),
-                                               (1, 7, False), (0, 2, False)])
+                                              (1, 7, False), (0, 2, False)])
 def test_a_las_version_of_none_of_1_0_to_1_4_is_a_corrupt_header(tmp_path, major, minor, ok):
     # laspy read a file whose header said LAS 9.2 without a word
     las = laspy.LasData(laspy.LasHeader(point_format=1, version="1.2"))
