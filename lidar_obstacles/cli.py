@@ -236,6 +236,9 @@ def build_parser() -> _Parser:
     s.add_argument("--objective", choices=("ground_kappa", "kappa", "total_error"),
                    default="ground_kappa",
                    help="what the search optimises (the kappas up, total_error down)")
+    s.add_argument("--topic", type=_topic, default=None,
+                   help="PointCloud2 topic of the labelled bags (default: a replay's /ground "
+                        "and /obstacles, else the only/biggest)")
     _skip_malformed_flag(s)
     return p
 
@@ -306,7 +309,8 @@ def run(args: argparse.Namespace) -> dict:
         return tune.tune(args.src, validate=args.validate, out=args.out,
                          budget_s=tune.parse_budget(args.budget), max_trials=args.trials,
                          seed=args.seed, space_file=args.space, start_file=args.start,
-                         objective=args.objective, skip_malformed=args.skip_malformed)
+                         objective=args.objective, topic=args.topic,
+                         skip_malformed=args.skip_malformed)
     if args.command == "demo":
         from lidar_obstacles.demo import run_demo
 

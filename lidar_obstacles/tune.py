@@ -158,9 +158,11 @@ def _scored(inputs: list[LabelledInput], cfg, objective) -> dict:
 def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
          budget_s: float = 600.0, max_trials: int = 200, seed: int = 0,
          space_file: Path | None = None, start_file: Path | None = None,
-         objective: str = "ground_kappa", skip_malformed: bool = False) -> dict:
-    """Search, write the best candidate as params YAML, return the summary. A malformed
-    cloud of an input bag stops it unless `skip_malformed` (`load_input`)."""
+         objective: str = "ground_kappa", topic: str | None = None,
+         skip_malformed: bool = False) -> dict:
+    """Search, write the best candidate as params YAML, return the summary. `topic`: the
+    labelled bags' PointCloud2 topic (`load_input`'s). A malformed cloud of an input bag
+    stops it unless `skip_malformed`."""
     from scipy.stats import qmc, spearmanr
     from tqdm import tqdm
 
@@ -176,8 +178,9 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
     sources = list(sources)
     if validate is None and len(sources) > 1:
         validate = [sources.pop()]  # guard against overfitting: keep one input unseen
-    inputs = [load_input(p, cfg=start, skip_malformed=skip_malformed) for p in sources]
-    held_out = [load_input(p, cfg=start, skip_malformed=skip_malformed)
+    inputs = [load_input(p, topic=topic, cfg=start, skip_malformed=skip_malformed)
+              for p in sources]
+    held_out = [load_input(p, topic=topic, cfg=start, skip_malformed=skip_malformed)
                 for p in (validate or [])]
     sobol = qmc.Sobol(d=len(dims), scramble=True, seed=seed)
     t_end = time.monotonic() + budget_s

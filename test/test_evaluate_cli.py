@@ -588,3 +588,20 @@ def test_tune_budget_is_a_positive_duration_said_so_when_not(text, seconds, erro
         with pytest.raises(ConfigError) as exc:
             parse_budget(text)
         assert str(exc.value) == error
+
+
+def test_tune_reads_the_topic_it_is_given(tmp_path, capsys):
+    # `tune` had no --topic: of a bag with several labelled clouds it took the biggest
+    from lidar_obstacles.cli import main
+
+    bag = tmp_path / "flight"
+    assert main(["simulate", str(bag), "--duration", "0.1", "--points", "500"]) == 0
+    capsys.readouterr()
+    out = tmp_path / "tuned.yaml"
+    assert main(["tune", str(bag), "--topic", "/scan", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lidar-obstacles tune: error: bag ") and "'/scan'" in err, err
+    assert not out.exists()
+    assert main(["tune", str(bag), "--topic", "/points", "--out", str(out), "--trials", "1",
+                 "--budget", "30s"]) == 0
+    assert out.is_file()
