@@ -402,14 +402,14 @@ class DemConfig:
                                "this above the detector's ground surface are left out of the "
                                "DEM: its acceptance band (0.5 m and more on slopes) keeps low "
                                "vegetation off the obstacle list, but a DEM wants bare earth "
-                               "(AHN4 end-to-end RMSE, kriging, 0.26 m with all of it, "
+                               "(AHN4 end-to-end RMSE, kriging, 0.24 m with all of it, "
                                "0.09 m with 0.15; 0: all of it)", "m", min=0.0, max=5.0)
     band_slope: float = param(
         0.5, "`ground_band` widens by this x the point spacing x the slope of the "
         "detector's surface: between sparse points on steep ground that surface is "
         "in-painted and real ground stands off it (end-to-end RMSE, kriging, ISPRS samp53 "
-        "2.01 -> 1.50 m, samp52 0.64 -> 0.50 m, but low vegetation on slopes comes in: "
-        "samp51 0.21 -> 0.31 m; ISPRS mean 0.69 -> 0.66 m; on dense scans (AHN) a few cm "
+        "2.03 -> 1.54 m, samp52 0.65 -> 0.51 m, but low vegetation on slopes comes in: "
+        "samp51 0.19 -> 0.25 m; ISPRS mean 0.70 -> 0.65 m; on dense scans (AHN) a few cm "
         "and no change; 0: a fixed band)",
         "1", min=0.0, max=10.0)
     patch_area: float = param(
