@@ -370,6 +370,15 @@ def test_evaluate_isprs_benchmark():
     # samp31's low objects, which the plain opening vetoed where the trend bends (2.68 %
     # before the de-trended opening's objects were taken alone, 1.78 % after)
     assert res["samples"]["samp31"]["total_error"] < 0.022
+    # the paper's 6 x 6 blocks: pooled over every sample's eligible blocks (measured 84.7 %
+    # of 425), and the mean of the samples' shares beside it
+    rows, blocks = res["samples"].values(), res["blocks"]
+    assert blocks["eligible"] == sum(r["blocks_eligible"] for r in rows) > 300
+    pooled = sum(r["blocks_eligible"] * (r["blocks_kappa_gt_0_8"] or 0) for r in rows)
+    assert blocks["share_kappa_gt_0_8_pooled"] == pytest.approx(pooled / blocks["eligible"])
+    assert blocks["share_kappa_gt_0_8_pooled"] > 0.8
+    assert blocks["share_kappa_gt_0_8_mean_of_samples"] == pytest.approx(
+        np.mean([r["blocks_kappa_gt_0_8"] for r in rows if r["blocks_kappa_gt_0_8"] is not None]))
 
 
 def test_evaluate_isprs_benchmark_needs_a_folder_of_all_samples(tmp_path):
