@@ -243,6 +243,62 @@ def test_the_dem_starts_afresh_in_a_new_frame():
     assert abs(np.isfinite(grid.elevation).sum() - np.isfinite(fresh.grid().elevation).sum()) < 50
 
 
+def _far_off(stamp_s: float, frame: str = "map"):
+    """A cloud the detector and the DEM refuse: it lies 1e9 m from the frame's origin."""
+    points = np.zeros(100, [("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+    points["x"] = 1e9 + np.arange(100.0)
+    return messages.cloud(points, messages.header(int(stamp_s * 1e9), frame))
+
+
+@pytest.mark.parametrize("bad_stamp, bad_frame", [(0.0, "map"), (11.0, "odom")])
+def test_a_refused_cloud_changes_nothing_of_the_stream(bad_stamp, bad_frame):
+    """A refused cloud stamped 0 or in another frame had started the stream over before
+    it was refused: the DEM lost every cell but the next cloud's, without a word or a
+    count (`restarts` 0), and a new frame's cloud made the next good one start over. The
+    stages that saw it end as their twins that did not."""
+    from lidar_obstacles.config import DemBuilderConfig
+    from lidar_obstacles.errors import CloudFormatError
+    from lidar_obstacles.ros.stages import DemStage
+
+    good = [_terrain(10.0, seed=0), _terrain(11.0, x0=70.0, seed=1)]  # the west, the east
+    last = _terrain(12.0, seed=5)
+    stages = DetectorStage(ObstacleDetectorConfig()), DemStage(DemBuilderConfig())
+    twins = DetectorStage(ObstacleDetectorConfig()), DemStage(DemBuilderConfig())
+    for msg in good:
+        for stage in (*stages, *twins):
+            stage.process(msg)
+    for stage in stages:
+        with pytest.raises(CloudFormatError, match="1e"):
+            stage.process(_far_off(bad_stamp, bad_frame))
+    (out, stats), (twin_out, _) = stages[0].process(last), twins[0].process(last)
+    assert stats["restart"] == "" and stages[0].pipeline.timeline.restarts == 0
+    assert read_points(dict(out)["ground"]).tobytes() == \
+        read_points(dict(twin_out)["ground"]).tobytes()
+    assert stages[1].process(last)["restart"] == ""
+    twins[1].process(last)
+    assert np.array_equal(stages[1].grid().elevation, twins[1].grid().elevation,
+                          equal_nan=True)
+
+
+def test_a_frame_named_with_a_leading_slash_is_the_same_frame():
+    """`/map` after `map` started the stream over, cloud after cloud (tf2 reads them as one
+    frame), and a cloud in `/odom` with odometry in `odom` was moved by the pose twice."""
+    from lidar_obstacles.ros.stages import Pose
+
+    stage = DetectorStage(ObstacleDetectorConfig())
+    said = [stage.process(_terrain(10.0 + k, frame=f))[1]["restart"]
+            for k, f in enumerate(("map", "/map", "map", "/map"))]
+    assert said == ["", "", "", ""]
+    moved = DetectorStage(replace(ObstacleDetectorConfig(), {"use_odometry": True}))
+    pose = Pose(10 * 10**9, np.array([100.0, 0.0, 50.0]), np.array([0.0, 0.0, 0.0, 1.0]),
+                "odom", "base_link")
+    for cloud_frame, pose_frame in (("/odom", "odom"), ("odom", "/odom")):
+        pose = Pose(pose.stamp_ns, pose.position, pose.orientation, pose_frame, "base_link")
+        out, _ = moved.process(_terrain(10.0, frame=cloud_frame), pose)
+        ground = read_points(dict(out)["ground"])
+        assert abs(float(np.mean(ground["x"])) - 30.0) < 2.0, (cloud_frame, pose_frame)
+
+
 def test_a_pose_in_another_frame_does_not_place_the_grids():
     """Odometry in `odom` at (500, 500), clouds in `map` round (30, 30), use_odometry off:
     the clearance grid stood round (500, 500) with nothing known, and the DEM's window

@@ -54,6 +54,14 @@ class GroundContext:
             return None
         return np.column_stack([xy[keep], self._z[keep]])
 
+    def saved(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The cells as they stand (`restore` puts them back; they are replaced, never
+        written in place)."""
+        return self._key, self._z, self._t
+
+    def restore(self, saved: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+        self._key, self._z, self._t = saved
+
     def shift(self, dz: float) -> None:
         """Move the remembered ground up by dz metres (:func:`frame_jump`)."""
         self._z = self._z + dz

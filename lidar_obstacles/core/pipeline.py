@@ -145,12 +145,14 @@ class Timeline:
 
     def restart(self, stamp: float, frame: str | None = None) -> str:
         """"" when the cloud stamped `stamp` s in `frame` (None: not known) goes on with
-        the stream; else why it starts it over."""
+        the stream; else why it starts it over. Frames are named as tf2 names them: a
+        leading '/' is the same frame (`/map` after `map` started over every time)."""
         why = ""
         if self.newest is not None and stamp < self.newest - RESTART_AFTER_S:
             why = (f"a cloud stamped {self.newest - stamp:.3f} s before the newest (the "
                    "clock went back)")
-        elif frame is not None and self.frame is not None and frame != self.frame:
+        elif (frame is not None and self.frame is not None
+              and frame.lstrip("/") != self.frame.lstrip("/")):
             why = f"a cloud in frame '{frame}' after clouds in '{self.frame}'"
         if why:
             self.restarts += 1
@@ -159,6 +161,14 @@ class Timeline:
             self.newest = stamp if self.newest is None else max(self.newest, stamp)
         self.frame = self.frame if frame is None else frame
         return why
+
+    def saved(self) -> tuple[float | None, str | None, int]:
+        """What `restore` puts back: the stream as it stood before a cloud."""
+        return self.newest, self.frame, self.restarts
+
+    def restore(self, saved: tuple[float | None, str | None, int]) -> None:
+        """The stream as `saved` (a cloud refused after `restart` saw it changes nothing)."""
+        self.newest, self.frame, self.restarts = saved
 
 
 @dataclass(frozen=True)
@@ -251,6 +261,18 @@ class StreamingGround:
         from lidar_obstacles.core.context import GroundContext
 
         self.context = GroundContext(self.cfg.context)
+
+    def saved(self) -> tuple:
+        """What `restore` puts back: the context, the random stream and the count of frame
+        jumps, as they stand before a cloud (its arrays are replaced, never written)."""
+        return (self.context, self.context.saved(), self.rng.bit_generator.state,
+                self.frame_jumps)
+
+    def restore(self, saved: tuple) -> None:
+        """The state `saved` (a cloud refused half-way changes nothing)."""
+        self.context, arrays, rng_state, self.frame_jumps = saved
+        self.context.restore(arrays)
+        self.rng.bit_generator.state = rng_state
 
     def classify(self, xyz: np.ndarray, stamp: float
                  ) -> tuple[GroundResult, dict[str, float], np.ndarray | None,
@@ -364,13 +386,22 @@ class ObstacleDetector:
         the context, so `replay` can run the second half in another process, one cloud
         behind (a restart travels in the step). Arguments as :meth:`process`."""
         xyz = points_xyz(xyz, "obstacle detector")
+        saved = self.timeline.saved(), self.ground.saved()
         restart = self.timeline.restart(stamp, frame)
         if restart:
             self.ground.restart()
         if len(xyz) == 0:
             return GroundStep(xyz, np.zeros(0, bool), np.zeros(0, np.float32), stamp,
                               vehicle_xyz, {"total": 0.0}, restart=restart)
-        g, timings, far, distinct = self.ground.classify(xyz, stamp)
+        try:
+            g, timings, far, distinct = self.ground.classify(xyz, stamp)
+        except BaseException:
+            # A cloud refused (`check_extent`: one that lies 1e9 m off) changes nothing:
+            # its stamp or frame had started the stream over, forgetting the context, and
+            # the next good cloud started it over again, uncounted
+            self.timeline.restore(saved[0])
+            self.ground.restore(saved[1])
+            raise
         first, inverse = distinct if distinct is not None else (None, None)
         return GroundStep(xyz, g.ground, g.height_above_ground, stamp, vehicle_xyz, timings,
                           far, first, inverse, restart)
@@ -618,11 +649,23 @@ class DemPipeline:
         stream starts over, and the DEM with it (:class:`Timeline`)."""
         t0 = time.perf_counter()
         xyz = points_xyz(xyz, "DEM builder")
+        saved = (self.timeline.saved(), self.dem, self.checks,
+                 None if self._ground is None else self._ground.saved())
         self._went_on(stamp, frame)
         if len(xyz) == 0:
             self.last_added = 0
             return {"ground": 0.0, "update": 0.0, "total": 0.0}
-        ground = self.ground_of(xyz, stamp=stamp, intensity=intensity)
+        try:
+            ground = self.ground_of(xyz, stamp=stamp, intensity=intensity)
+        except BaseException:
+            # a cloud refused changes nothing (as ObstacleDetector.ground_step): a stamp 0
+            # or another frame had dropped the whole DEM, without a word
+            self.timeline.restore(saved[0])
+            self.dem, self.checks = saved[1], saved[2]
+            if saved[3] is not None and self._ground is not None:
+                self._ground.restore(saved[3])
+            self.last_restart = ""
+            raise
         t1 = time.perf_counter()
         timings = self._add(xyz[ground], stamp=stamp, vehicle_xyz=vehicle_xyz)
         return {"ground": t1 - t0, "update": timings["update"],

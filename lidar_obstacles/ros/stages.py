@@ -178,7 +178,9 @@ def prepare(msg, *, keep_non_finite: bool, max_points: int, pose: Pose | None,
     points = read_points(msg, keep_non_finite=keep_non_finite).reshape(-1)
     xyz = xyz_of(points)
     frame = msg.header.frame_id
-    if transform and pose is not None and frame != pose.frame_id:
+    # (names as tf2 reads them: a leading '/' names the same frame, and the cloud was
+    # moved by the pose a second time)
+    if transform and pose is not None and frame.lstrip("/") != pose.frame_id.lstrip("/"):
         xyz = xyz @ pose.rotation().T + pose.position
         points = with_xyz(points, xyz, widen=widen_xyz)
         frame = pose.frame_id
