@@ -286,8 +286,8 @@ class ObstaclesConfig:
 
 @dataclass(frozen=True)
 class ClearanceConfig:
-    size: float = param(100.0, "edge of the square clearance grid centred on the vehicle",
-                        "m", min=5.0, max=2000.0)
+    size: float = param(100.0, "edge of the square clearance grid centred on the vehicle "
+                        "(rounded to whole cells)", "m", min=5.0, max=2000.0)
     resolution: float = param(1.0, "cell edge of the clearance grid (size / resolution: "
                               "at most 2000 cells a side)", "m", min=0.1, max=50.0)
     max_height: float = param(50.0, "obstacle height above ground that maps to 100", "m",
@@ -298,6 +298,10 @@ class ClearanceConfig:
     MAX_SIDE = 2000
 
     def __post_init__(self) -> None:
+        if self.resolution > self.size:  # (one cell of 50 m stood for a 5 m grid)
+            raise ConfigError(f"clearance.resolution {self.resolution:g} m is coarser than "
+                              f"clearance.size {self.size:g} m: not one cell fits in the "
+                              "grid")
         side = round(self.size / self.resolution)
         if side > self.MAX_SIDE:
             raise ConfigError(f"clearance.size / clearance.resolution is {side} cells a side, "

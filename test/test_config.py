@@ -282,6 +282,15 @@ def test_a_clearance_grid_too_many_cells_a_side_is_refused():
                                               "clearance.resolution": 0.1}).clearance.size == 200
 
 
+def test_a_clearance_cell_larger_than_the_grid_is_refused():
+    # size 5 m, resolution 50 m, each in range: one 50 m cell stood for the 5 m grid
+    with pytest.raises(ConfigError, match="clearance.resolution 50 m is coarser than "
+                                          "clearance.size 5 m: not one cell fits"):
+        replace(ObstacleDetectorConfig(), {"clearance.size": 5.0, "clearance.resolution": 50.0})
+    assert replace(ObstacleDetectorConfig(), {"clearance.size": 50.0,
+                                              "clearance.resolution": 50.0}).clearance.size == 50
+
+
 @pytest.mark.parametrize("text, value", [("1e-6", 1e-6), ("1E-6", 1e-6), ("1.0e-06", 1e-6),
                                          (".00001", 1e-5), ("2e-3", 2e-3)])
 def test_floats_are_read_as_the_nodes_read_them(tmp_path, text, value):

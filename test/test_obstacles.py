@@ -158,6 +158,20 @@ def test_clearance_grid_by_hand():
         assert cells[0, 0] == value, height
 
 
+def test_a_clearance_grid_of_a_size_not_of_whole_cells_is_centred_on_its_own_span():
+    # 100 m of 30 m cells: 3 cells, 90 m, placed as if 100 m (the vehicle 5 m off the
+    # middle of the middle cell's row)
+    from lidar_obstacles.config import replace
+
+    cfg = replace(ObstacleDetectorConfig(), {"clearance.size": 100.0,
+                                             "clearance.resolution": 30.0}).clearance
+    cells, origin, res = clearance_grid(np.zeros((0, 3)), np.zeros(0, np.uint8),
+                                        np.zeros(0, np.float32), centre_xy=np.array([45.0, 45.0]),
+                                        cfg=cfg)
+    assert cells.shape == (3, 3) and res == 30.0
+    assert tuple(origin) == (0.0, 0.0)  # 45 m, the middle of 0..90
+
+
 def test_the_detectors_clearance_grid_is_centred_on_the_vehicle_else_on_the_cloud():
     """A 20 m grid of 2 m cells around the vehicle's x, y (REP-103: x east = columns, y
     north = rows from the south edge), or without a vehicle position around the middle of

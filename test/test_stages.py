@@ -45,6 +45,7 @@ def test_kept_points_without_a_return_are_noise_never_ground_and_not_counted():
     ([0.0, np.nan, 50.0], [0.0, 0.0, 0.0, 1.0], "not finite"),
     ([np.inf, 0.0, 50.0], [0.0, 0.0, 0.0, 1.0], "not finite"),
     ([0.0, 0.0, 50.0], [0.0, np.nan, 0.0, 1.0], "not finite"),
+    ([1e300, 0.0, 50.0], [0.0, 0.0, 0.0, 1.0], "beyond 1e+08 m"),
 ])
 def test_an_odometry_pose_that_cannot_place_a_cloud_is_left_out(position, orientation, said):
     # used as it came, a zero quaternion put every point of the cloud at NaN: published as
@@ -59,6 +60,16 @@ def test_an_odometry_pose_that_cannot_place_a_cloud_is_left_out(position, orient
     problem = poses.add(bad)
     assert problem is not None and said in problem
     assert poses.nearest(10**9 + 10**7, 0.2) is good  # the good one stands in
+
+
+def test_a_huge_quaternion_keeps_its_rotation():
+    # (0, 0, 1e300, 1e300), a quarter turn about z: its norm overflowed to inf, and the
+    # pose was taken for no rotation at all
+    from lidar_obstacles.ros.stages import Pose
+
+    for q in ([0.0, 0.0, 1e300, 1e300], [0.0, 0.0, 1e-300, 1e-300], [0.0, 0.0, 1.0, 1.0]):
+        rot = Pose(1, np.zeros(3), np.array(q), "odom").rotation()
+        assert np.allclose(rot @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]), q
 
 
 def test_frame_warnings_say_when_clouds_and_odometry_do_not_fit():
@@ -368,8 +379,33 @@ def test_a_late_odometry_pose_goes_in_its_place():
         poses.add(at(s))
     assert [poses.nearest(int(s * 1e9), 0.01).position[0] for s in (10.0, 10.1, 10.15, 10.2)] \
         == [10.0, 10.1, 10.15, 10.2]
-    poses.add(at(3.0))
+    for s in (3.0, 3.02, 3.04):  # (CLOCK_JUMP_POSES in a row)
+        poses.add(at(s))
     assert poses.nearest(int(10.2e9), 0.01) is None and poses.nearest(int(3e9), 0.01) is not None
+    for s in (6.0, 6.02, 6.04):  # odometry back after a 3 s gap: it goes on from there
+        poses.add(at(s))
+    assert poses.nearest(int(6e9), 0.01) is not None and poses.nearest(int(3e9), 0.01) is not None
+
+
+@pytest.mark.parametrize("glitch", [2.0, 1000.0])
+def test_one_odometry_pose_of_another_clock_empties_nothing(glitch):
+    """One pose stamped seconds back (a glitch; an unset stamp is refused outright) or far
+    ahead emptied the poses held, and the clouds waiting for them were dropped; now the
+    clock is taken to have jumped only when CLOCK_JUMP_POSES poses in a row say so."""
+    from lidar_obstacles.ros.node_base import CLOCK_JUMP_POSES, PoseBuffer
+    from lidar_obstacles.ros.stages import Pose
+
+    def at(s: float) -> Pose:
+        return Pose(int(s * 1e9), np.array([s, 0.0, 50.0]), np.array([0.0, 0.0, 0.0, 1.0]),
+                    "map")
+
+    poses = PoseBuffer()
+    for s in (10.0, 10.02, 10.04, glitch, *(10.06 + 0.02 * k for k in range(CLOCK_JUMP_POSES))):
+        assert poses.add(at(s)) is None
+    for s in (10.0, 10.04, 10.06, 10.06 + 0.02 * (CLOCK_JUMP_POSES - 1)):
+        assert poses.nearest(int(s * 1e9), 0.001).position[0] == pytest.approx(s), s
+    assert poses.nearest(int(glitch * 1e9), 0.5) is None
+    assert "unset stamp" in poses.add(at(0.0))
 
 
 def test_a_subscription_destroyed_while_the_wait_set_is_built_does_not_stop_the_node():

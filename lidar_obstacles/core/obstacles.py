@@ -1807,7 +1807,9 @@ def clearance_grid(xyz: np.ndarray, classes: np.ndarray, height_above_ground: np
     resolution m)."""
     res = cfg.resolution
     side = max(1, int(round(cfg.size / res)))
-    origin = np.floor((np.asarray(centre_xy, float) - cfg.size / 2) / res) * res
+    # centred on the grid's own span: `size` rounded to whole cells (100 m of 30 m cells
+    # made 90 m, placed as if 100 m, the vehicle 5 m off its middle)
+    origin = np.floor((np.asarray(centre_xy, float) - side * res / 2) / res) * res
     cells = np.full((side, side), -1, np.int8)
     # one column at a time (no (N, 2) temporaries); a NaN x or y compares false: outside
     col, row = ((xyz[:, a] - origin[a]) / res for a in (0, 1))

@@ -103,6 +103,11 @@ class _FollowingInput:
         return True
 
 
+# Poses in a row stamped more than RESTART_AFTER_S from the newest held that tell the clock
+# jumped; fewer are a glitch (one pose of another clock, a far-future stamp).
+CLOCK_JUMP_POSES = 3
+
+
 class PoseBuffer:
     """Odometry poses of the last few seconds, looked up by nearest stamp. Thread-safe:
     the executor adds poses while the worker thread looks them up, and may wait for them."""
@@ -111,6 +116,7 @@ class PoseBuffer:
         self.horizon_ns = int(horizon_s * 1e9)
         self._stamps: collections.deque[int] = collections.deque()
         self._poses: collections.deque[Pose] = collections.deque()
+        self._jumped: list[Pose] = []  # poses in a row far from the newest held (`_add`)
         self._lock = threading.Condition()
 
     def add(self, pose: Pose) -> str | None:
@@ -124,9 +130,28 @@ class PoseBuffer:
         return None
 
     def _add(self, pose: Pose) -> None:
-        if self._stamps and pose.stamp_ns < self._stamps[-1] - RESTART_AFTER_S * 1e9:
-            self._stamps.clear()  # time jumped back (bag loop): start over
-            self._poses.clear()
+        if self._stamps and abs(pose.stamp_ns - self._stamps[-1]) > RESTART_AFTER_S * 1e9:
+            # More than a second from the newest held: the clock jumped (a bag played
+            # again, or skipped ahead) once CLOCK_JUMP_POSES in a row say so; fewer are a
+            # glitch, left out. One pose stamped back emptied the buffer, one stamped ahead
+            # aged every other out, and the clouds then waiting were dropped.
+            self._jumped.append(pose)
+            if len(self._jumped) < CLOCK_JUMP_POSES:
+                return
+            # what is held after them is of the earlier run
+            keep = bisect.bisect_right(self._stamps, max(p.stamp_ns for p in self._jumped)
+                                       + RESTART_AFTER_S * 1e9)
+            while len(self._stamps) > keep:
+                self._stamps.pop()
+                self._poses.pop()
+            jumped, self._jumped = self._jumped, []
+            for p in jumped:
+                self._insert(p)
+            return
+        self._jumped.clear()
+        self._insert(pose)
+
+    def _insert(self, pose: Pose) -> None:
         # a pose a little late (best-effort odometry reordered, two publishers) goes in
         # its place: it emptied the buffer, and the clouds waited or were dropped
         at = bisect.bisect_right(self._stamps, pose.stamp_ns)

@@ -40,11 +40,23 @@ class Pose:
     child_frame_id: str = ""
 
     def rotation(self) -> np.ndarray:
-        x, y, z, w = np.asarray(self.orientation, float) / np.linalg.norm(self.orientation)
+        x, y, z, w = _unit(self.orientation)
         return np.array([
             [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
             [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
             [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def _unit(q: np.ndarray) -> np.ndarray:
+    """(4,) quaternion q at unit length; scaled by its largest element first, so that a
+    huge one (1e300: the norm overflowed to inf, and the pose turned into no rotation)
+    keeps its direction. All zeros for a quaternion of no length."""
+    q = np.asarray(q, float)
+    top = float(np.max(np.abs(q))) if q.size else 0.0
+    if not top > 0:
+        return np.zeros(4)
+    q = q / top
+    return q / np.linalg.norm(q)
 
 
 def pose_of_odometry(msg) -> Pose:
@@ -55,15 +67,28 @@ def pose_of_odometry(msg) -> Pose:
                 msg.child_frame_id)
 
 
+# No pose of a survey or a flight lies further from its frame's origin (m): as the clouds'
+# limit (io.las.MAX_COORDINATE); a position of 1e300 m moved the cloud there.
+MAX_POSE_COORDINATE = 1e8
+
+
 def pose_problem(pose: Pose) -> str | None:
     """Why a pose cannot place a cloud (None when it can): a position or orientation
-    that is not finite, or an orientation of no length (all zeros: "unset"). Used as it
-    came, such a pose put every point of its cloud at NaN, or at 1e12 m."""
+    that is not finite, a position beyond MAX_POSE_COORDINATE, an orientation of no length
+    (all zeros: "unset"), or an unset stamp (0, which would also have emptied the held
+    poses as a clock gone back). Used as it came, such a pose put every point of its cloud
+    at NaN, or at 1e12 m."""
+    at = f"odometry pose at {pose.stamp_ns / 1e9:.3f} s"
     if not (np.isfinite(pose.position).all() and np.isfinite(pose.orientation).all()):
-        return (f"odometry pose at {pose.stamp_ns / 1e9:.3f} s is not finite (position "
-                f"{pose.position.tolist()}, orientation {pose.orientation.tolist()})")
-    if np.linalg.norm(pose.orientation) < 1e-6:
-        return f"odometry pose at {pose.stamp_ns / 1e9:.3f} s has a zero quaternion"
+        return (f"{at} is not finite (position {pose.position.tolist()}, orientation "
+                f"{pose.orientation.tolist()})")
+    if np.abs(pose.position).max() > MAX_POSE_COORDINATE:
+        return (f"{at} lies {np.abs(pose.position).max():.3g} m from its frame's origin, "
+                f"beyond {MAX_POSE_COORDINATE:.0e} m of any flight")
+    if not np.abs(pose.orientation).max() > 0:
+        return f"{at} has a zero quaternion"
+    if pose.stamp_ns == 0:
+        return "odometry pose with an unset stamp (0)"
     return None
 
 
