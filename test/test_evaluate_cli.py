@@ -504,7 +504,7 @@ def test_tune_on_one_input_scores_every_candidate_and_warns_when_held_out_is_wor
     than the start on the held-out inputs is written with a warning."""
     from lidar_obstacles import tune
 
-    monkeypatch.setattr(tune, "load_input", lambda path, cfg, skip_malformed: LabelledInput(
+    monkeypatch.setattr(tune, "load_input", lambda path, cfg, skip_malformed, topic: LabelledInput(
         Path(path).name, "las", [], None))
     # the first input: the start scores 0.9, the others far lower, all but the last
     # candidate worse than it; the held-out input prefers the start
