@@ -501,3 +501,23 @@ def test_data_added_twice_before_a_read_has_both_regions_filled():
                 c = int((cx - grid.origin[0]) / grid.resolution)
                 r = int((cy - grid.origin[1]) / grid.resolution)
                 assert grid.interpolated[r, c] == 1 and np.isfinite(grid.elevation[r, c])
+
+
+@pytest.mark.parametrize("lo, hi", [((0.0, 0.0), (200.0, 200.0)), ((-57.3, 12.9), (2e4, 43.0)),
+                                    ((5.0, 5.0), (5.0, 3e5)), ((1e5, -3e4), (1.02e5, -2.9e4))])
+def test_the_resolution_said_to_fit_fits_edge_cells_and_all(lo, hi):
+    # 200 x 200 m at 0.05 m was told "0.1 m", which needs 2001^2 cells, over 4 000 000;
+    # a span of 0 on one axis failed on log10(0)
+    import re
+
+    from lidar_obstacles.config import DemBuilderConfig, replace
+    from lidar_obstacles.core.dem import too_large_message
+
+    cfg = replace(DemBuilderConfig(), {"dem.resolution": 0.05})
+    said = too_large_message(np.array(lo), np.array(hi), cfg)
+    r = float(re.search(r"coarsen dem.resolution to ([\d.e+-]+) m$", said).group(1))
+    cells = np.prod(np.floor(np.array(hi) / r) - np.floor(np.array(lo) / r) + 1)
+    assert cells <= cfg.dem.max_cells, said
+    coarser_than_needed = r - 10.0 ** (np.floor(np.log10(r)) - 1)
+    assert np.prod(np.floor(np.array(hi) / coarser_than_needed)
+                   - np.floor(np.array(lo) / coarser_than_needed) + 1) > cfg.dem.max_cells

@@ -174,6 +174,10 @@ def test_a_cloud_moved_into_a_utm_odometry_frame_is_classified_at_its_exact_posi
     assert coarse_xyz_warning(msg, pose, replace(cfg, {"odometry_xyz_type": "float64"})) is None
     near = Pose(10**9, np.array([3512.3, -812.5, 345.6]), pose.orientation, "odom")
     assert coarse_xyz_warning(msg, near, cfg) is None  # a local frame: FLOAT32 to 0.5 mm
+    # clouds already in the odometry's frame are not moved, `/utm` being `utm` (tf2's
+    # names): nothing to say of their fields
+    in_utm = messages.cloud(pts, messages.header(10**9, "/utm"))
+    assert coarse_xyz_warning(in_utm, pose, cfg) is None
 
 
 def _with_noise_and_a_pole(xyz):

@@ -180,3 +180,10 @@ def test_an_unknown_point_format_is_named(tmp_path):
     path.write_bytes(bytes(data))
     with pytest.raises(LasError, match=r"point format 42 is not one of LAS 1\.0-1\.4's"):
         read_las(path)
+
+
+def test_a_missing_source_of_a_subset_is_a_las_error(tmp_path):
+    from lidar_obstacles.io.las import write_las_subset
+
+    with pytest.raises(LasError, match="cannot read LAS file .*nope.las: No such file"):
+        write_las_subset(tmp_path / "nope.las", np.ones(3, bool), tmp_path / "out.las")

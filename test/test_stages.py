@@ -62,6 +62,33 @@ def test_an_odometry_pose_that_cannot_place_a_cloud_is_left_out(position, orient
     assert poses.nearest(10**9 + 10**7, 0.2) is good  # the good one stands in
 
 
+def test_slow_odometry_and_a_clock_gone_back_by_seconds_place_clouds_with_their_own_poses():
+    """Poses 2 s apart (`odometry_max_age` 2) are no clock jumps: each places its cloud at
+    once. After the clock went back 5 s, no pose of the earlier run (1 km off here) may
+    place a cloud of the new one: all that was held goes."""
+    from lidar_obstacles.ros.node_base import PoseBuffer
+    from lidar_obstacles.ros.stages import Pose
+
+    def at(s: float, x: float) -> Pose:
+        return Pose(int(round(s * 1e9)), np.array([x, 0.0, 50.0]),
+                    np.array([0.0, 0.0, 0.0, 1.0]), "map")
+
+    slow = PoseBuffer()
+    for s in (1.0, 3.0, 5.0, 7.0):
+        slow.add(at(s, s))
+        assert slow.nearest(int(s * 1e9), 2.0).position[0] == s
+    poses = PoseBuffer()
+    for k in range(201):  # 90-100 s at 20 Hz
+        poses.add(at(90.0 + 0.05 * k, 90.0 + 0.05 * k))
+    placed = []
+    for k in range(60):  # the clock back at 95 s, the vehicle 1 km away
+        s = 95.0 + 0.05 * k
+        poses.add(at(s, s + 1000.0))
+        if k >= 2:
+            placed.append(poses.nearest(int(round(s * 1e9)), 0.2).position[0] - s)
+    assert np.allclose(placed, 1000.0) and len(placed) == 58
+
+
 def test_a_huge_quaternion_keeps_its_rotation():
     # (0, 0, 1e300, 1e300), a quarter turn about z: its norm overflowed to inf, and the
     # pose was taken for no rotation at all
@@ -285,10 +312,33 @@ def test_a_refused_cloud_changes_nothing_of_the_stream(bad_stamp, bad_frame):
     assert stats["restart"] == "" and stages[0].pipeline.timeline.restarts == 0
     assert read_points(dict(out)["ground"]).tobytes() == \
         read_points(dict(twin_out)["ground"]).tobytes()
+    # the DEM published meanwhile keeps its frame and time (dem_outputs' header)
+    assert (stages[1].frame_id, stages[1].last_stamp_ns) == ("map", 11 * 10**9)
     assert stages[1].process(last)["restart"] == ""
     twins[1].process(last)
     assert np.array_equal(stages[1].grid().elevation, twins[1].grid().elevation,
                           equal_nan=True)
+
+
+def test_the_span_export_dem_names_is_of_the_points_its_dem_would_take():
+    """Over dem.max_cells, the whole survey's span is said: of the points the DEM takes, not
+    of a stray point 5 km off (the span said 5000 x 5000 m for 130 x 60 m of ground) nor
+    of a cloud refused."""
+    from lidar_obstacles.config import DemBuilderConfig
+    from lidar_obstacles.errors import CloudFormatError
+    from lidar_obstacles.ros.stages import DemStage
+
+    stage = DemStage(replace(DemBuilderConfig(), {"dem.max_cells": 2000, "dem.extent": 0.0}),
+                     whole=True)
+    for k in range(3):  # 0-130 x 0-60 m of ground, and one stray point 5 km off
+        msg = _terrain(10.0 + k, x0=35.0 * k, seed=k)
+        points = read_points(msg).copy()
+        points[0] = (5000.0, 5000.0, 0.0)
+        stage.process(messages.cloud(points, msg.header))
+    with pytest.raises(CloudFormatError):
+        stage.process(_far_off(13.0))
+    assert stage.too_large
+    assert stage.too_large_message().startswith("the survey spans 130 x 60 m: ")
 
 
 def test_a_frame_named_with_a_leading_slash_is_the_same_frame():
@@ -391,7 +441,8 @@ def test_a_late_odometry_pose_goes_in_its_place():
 def test_one_odometry_pose_of_another_clock_empties_nothing(glitch):
     """One pose stamped seconds back (a glitch; an unset stamp is refused outright) or far
     ahead emptied the poses held, and the clouds waiting for them were dropped; now the
-    clock is taken to have jumped only when CLOCK_JUMP_POSES poses in a row say so."""
+    clock is taken to have gone back only when CLOCK_JUMP_POSES poses in a row say so,
+    and a pose far ahead ages nothing out."""
     from lidar_obstacles.ros.node_base import CLOCK_JUMP_POSES, PoseBuffer
     from lidar_obstacles.ros.stages import Pose
 

@@ -363,10 +363,18 @@ def too_large_message(lo: np.ndarray, hi: np.ndarray, cfg: DemBuilderConfig) -> 
     res, limit = cfg.dem.resolution, cfg.dem.max_cells
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
     span = hi - lo
-    cells = int(np.prod(np.floor(hi / res) - np.floor(lo / res) + 1))
-    fits = float(np.sqrt(span[0] * span[1] / limit))  # (the edge cells aside)
-    digits = 2 - int(np.ceil(np.log10(fits)))  # rounded up, to two significant figures
-    fits = float(np.ceil(fits * 10.0 ** digits) / 10.0 ** digits)
+
+    def cells_at(r: float) -> int:  # (as RollingDem frames the survey)
+        return int(np.prod(np.floor(hi / r) - np.floor(lo / r) + 1))
+
+    cells = cells_at(res)
+    # from the area's estimate (the edge cells aside), up in steps of two significant
+    # figures until the grid fits, edge cells and all
+    fits = max(float(np.sqrt(span[0] * span[1] / limit)), float(span.max()) / limit, res)
+    step = 10.0 ** (int(np.floor(np.log10(fits))) - 1)
+    fits = float(np.ceil(fits / step) * step)
+    while cells_at(fits) > limit:
+        fits = float(np.round(fits + 10.0 ** (int(np.floor(np.log10(fits))) - 1), 12))
     return (f"the survey spans {span[0]:.0f} x {span[1]:.0f} m: {cells} cells of "
             f"dem.resolution {res:g} m, over dem.max_cells = {limit}; raise it to {cells} "
             f"(~{_CELL_BYTES} bytes a cell: {cells * _CELL_BYTES / 1e9:.2g} GB) or coarsen "

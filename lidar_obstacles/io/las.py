@@ -97,8 +97,11 @@ def _read_laspy(path: Path) -> LasData:
     import laspy
 
     what = f"cannot read LAS file {path}"
-    with open(path, "rb") as f:  # (a LAZ file's header is a LAS header too)
-        head = f.read(26)
+    try:
+        with open(path, "rb") as f:  # (a LAZ file's header is a LAS header too)
+            head = f.read(26)
+    except OSError as exc:
+        raise LasError(f"{what}: {exc.strerror or exc}") from None
     if head[:4] == b"LASF" and len(head) == 26 and (head[24] != 1 or head[25] > 4):
         # laspy read a header saying 9.2 as 1.2, and one saying 1.7 failed to "unpack"
         raise LasError(f"{what}: its header says LAS {head[24]}.{head[25]}, none of 1.0-1.4: "

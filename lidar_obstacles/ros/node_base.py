@@ -103,8 +103,9 @@ class _FollowingInput:
         return True
 
 
-# Poses in a row stamped more than RESTART_AFTER_S from the newest held that tell the clock
-# jumped; fewer are a glitch (one pose of another clock, a far-future stamp).
+# Poses in a row stamped more than RESTART_AFTER_S before the newest held that tell the
+# clock went back; fewer are a glitch (one pose of another clock). As many or more held
+# after them are an earlier run's; fewer, a glitch ahead.
 CLOCK_JUMP_POSES = 3
 
 
@@ -116,7 +117,7 @@ class PoseBuffer:
         self.horizon_ns = int(horizon_s * 1e9)
         self._stamps: collections.deque[int] = collections.deque()
         self._poses: collections.deque[Pose] = collections.deque()
-        self._jumped: list[Pose] = []  # poses in a row far from the newest held (`_add`)
+        self._jumped: list[Pose] = []  # poses in a row from before the newest (`_add`)
         self._lock = threading.Condition()
 
     def add(self, pose: Pose) -> str | None:
@@ -130,17 +131,21 @@ class PoseBuffer:
         return None
 
     def _add(self, pose: Pose) -> None:
-        if self._stamps and abs(pose.stamp_ns - self._stamps[-1]) > RESTART_AFTER_S * 1e9:
-            # More than a second from the newest held: the clock jumped (a bag played
-            # again, or skipped ahead) once CLOCK_JUMP_POSES in a row say so; fewer are a
-            # glitch, left out. One pose stamped back emptied the buffer, one stamped ahead
-            # aged every other out, and the clouds then waiting were dropped.
+        newest = self._stamps[-1] if self._stamps else None
+        if newest is not None and pose.stamp_ns < newest - RESTART_AFTER_S * 1e9:
+            # Stamped more than a second before the newest held: the clock went back (a
+            # bag played again) once CLOCK_JUMP_POSES in a row say so; fewer are a glitch,
+            # left out. One such pose emptied the buffer, and the clouds then waiting for
+            # their poses were dropped.
             self._jumped.append(pose)
             if len(self._jumped) < CLOCK_JUMP_POSES:
                 return
-            # what is held after them is of the earlier run
-            keep = bisect.bisect_right(self._stamps, max(p.stamp_ns for p in self._jumped)
-                                       + RESTART_AFTER_S * 1e9)
+            after = bisect.bisect_right(self._stamps, max(p.stamp_ns for p in self._jumped)
+                                        + RESTART_AFTER_S * 1e9)
+            if len(self._stamps) - after < CLOCK_JUMP_POSES:
+                keep = after  # a glitch ahead (a pose or two stamped far later): it goes
+            else:
+                keep = 0  # the clock went back: all that is held is of the earlier run
             while len(self._stamps) > keep:
                 self._stamps.pop()
                 self._poses.pop()
@@ -149,15 +154,18 @@ class PoseBuffer:
                 self._insert(p)
             return
         self._jumped.clear()
-        self._insert(pose)
+        # a pose far ahead of the newest (odometry back after a gap, or a glitch) does not
+        # age the others out: the poses after it do, by their own stamps
+        self._insert(pose, age_out=newest is None
+                     or pose.stamp_ns <= newest + RESTART_AFTER_S * 1e9)
 
-    def _insert(self, pose: Pose) -> None:
+    def _insert(self, pose: Pose, age_out: bool = True) -> None:
         # a pose a little late (best-effort odometry reordered, two publishers) goes in
         # its place: it emptied the buffer, and the clouds waited or were dropped
         at = bisect.bisect_right(self._stamps, pose.stamp_ns)
         self._stamps.insert(at, pose.stamp_ns)
         self._poses.insert(at, pose)
-        while self._stamps and self._stamps[0] < pose.stamp_ns - self.horizon_ns:
+        while age_out and self._stamps and self._stamps[0] < pose.stamp_ns - self.horizon_ns:
             self._stamps.popleft()
             self._poses.popleft()
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from lidar_obstacles.config import (CloudSimplifierConfig, DemBuilderConfig, NodeInputConfig,
                                     ObstacleDetectorConfig, PointsNodeConfig)
-from lidar_obstacles.core.arrays import all_columns, column_max, column_min
+from lidar_obstacles.core.arrays import all_columns
 from lidar_obstacles.core.classes import GROUND, NOISE
 from lidar_obstacles.core.dem import DemTooLarge, too_large_message
 from lidar_obstacles.core.pipeline import (DemPipeline, GroundStep, ObstacleDetector,
@@ -151,7 +151,8 @@ def coarse_xyz_warning(msg, pose: Pose | None, cfg: NodeInputConfig) -> str | No
     FLOAT32 holds the coordinates only to more than a centimetre (beyond 131 km: a UTM
     frame's, whose northings it holds to 0.5 m). None when all is well."""
     if (not isinstance(cfg, PointsNodeConfig) or cfg.odometry_xyz_type != "input"
-            or not cfg.use_odometry or pose is None or msg.header.frame_id == pose.frame_id):
+            or not cfg.use_odometry or pose is None
+            or msg.header.frame_id.lstrip("/") == pose.frame_id.lstrip("/")):
         return None
     if not any(f.name in ("x", "y", "z") and f.datatype == FLOAT32 for f in msg.fields):
         return None
@@ -402,24 +403,35 @@ class DemStage:
         t0 = time.perf_counter()
         prep = prepare(msg, keep_non_finite=False, max_points=cfg.input.max_points,
                        pose=pose, transform=cfg.use_odometry)
-        self.frame_id = prep.frame_id
-        self.last_stamp_ns = prep.stamp_ns
         vehicle = DetectorStage.vehicle(pose, prep.frame_id)
         if self.whole and len(prep.xyz):
-            lo, hi = column_min(prep.xyz[:, :2]), column_max(prep.xyz[:, :2])
-            self.span = ((lo, hi) if self.span is None else
-                         (np.minimum(lo, self.span[0]), np.maximum(hi, self.span[1])))
-        if self.too_large:  # (the DEM given up: only the span is still wanted)
-            return {"points_in": len(prep.points), "points_out": 0, "timings": {},
-                    "seconds": time.perf_counter() - t0, "restart": ""}
-        try:
-            timings = self._add(prep, vehicle)
-        except DemTooLarge:
-            self.too_large = True
-            timings = {}
-        return {"points_in": len(prep.points), "points_out": self.pipeline.last_added,
+            self._measure(prep.xyz)
+        timings: dict = {}
+        if not self.too_large:  # (the DEM given up: only the span is still wanted)
+            try:
+                timings = self._add(prep, vehicle)
+            except DemTooLarge:
+                self.too_large = True
+        # the DEM's frame and time once the cloud is in (a refused one changes neither)
+        self.frame_id = prep.frame_id
+        self.last_stamp_ns = prep.stamp_ns
+        return {"points_in": len(prep.points),
+                "points_out": 0 if self.too_large else self.pipeline.last_added,
                 "timings": timings, "seconds": time.perf_counter() - t0,
-                "restart": self.pipeline.last_restart}
+                "restart": "" if self.too_large else self.pipeline.last_restart}
+
+    def _measure(self, xyz: np.ndarray) -> None:
+        """The whole survey's span (`span`) with a cloud's points (N, 3) m, those the DEM
+        would take: not its stray points (`far_points`), and none of a cloud the ground
+        filter refuses (CloudFormatError: it lies 1e9 m off)."""
+        from lidar_obstacles.core.ground import check_extent, far_points
+
+        far = far_points(xyz)
+        near = xyz[~far] if far.any() else xyz
+        lo, hi = check_extent(near, self.cfg.ground.cell)
+        lo, hi = np.asarray(lo, float)[:2], np.asarray(hi, float)[:2]
+        self.span = ((lo, hi) if self.span is None else
+                     (np.minimum(lo, self.span[0]), np.maximum(hi, self.span[1])))
 
     def too_large_message(self) -> str:
         """Why the whole survey's DEM was not made (`too_large`): its span and what fits."""
