@@ -308,8 +308,9 @@ def evaluate(src: str | Path, *, params_file: str | Path | None = None,
     """All the figures of `lidar-obstacles evaluate` for one input (JSON-ready dict). A
     malformed cloud of a labelled bag stops it unless `skip_malformed` (`load_input`)."""
     from lidar_obstacles.core.metrics import (evaluate_classes, jsonable, latency_stats,
-                                              raised_objects_as_ground)
+                                              parse_blocks, raised_objects_as_ground)
 
+    parse_blocks(blocks)  # a mistyped grid said now, not after the pipeline's run
     if report_dir is not None:
         _check_report_folder(Path(report_dir))  # before the work, not after it
     det_cfg, dem_cfg = _configs(params_file)

@@ -614,3 +614,22 @@ def test_tune_reads_the_topic_it_is_given(tmp_path, capsys):
     assert main(["tune", str(bag), "--topic", "/points", "--out", str(out), "--trials", "1",
                  "--budget", "30s"]) == 0
     assert out.is_file()
+
+
+def test_evaluate_says_a_bad_blocks_grid_before_the_work(tmp_path, monkeypatch, capsys):
+    # `--blocks 0x3` was said only after the pipeline had run on every cloud (16 s for a
+    # 30 s flight), as the figures were computed
+    from lidar_obstacles import evaluate as ev
+    from lidar_obstacles.cli import main
+
+    bag = tmp_path / "flight"
+    assert main(["simulate", str(bag), "--duration", "0.1", "--points", "500"]) == 0
+    capsys.readouterr()
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the input was read before --blocks was checked")
+
+    monkeypatch.setattr(ev, "load_input", no_work)
+    assert main(["evaluate", str(bag), "--blocks", "0x3"]) == 2
+    assert capsys.readouterr().err == ("lidar-obstacles evaluate: error: blocks: nx and ny "
+                                       "must lie in 1..1000, got 0x3\n")
