@@ -256,7 +256,9 @@ def run(args: argparse.Namespace) -> dict:
 
     src = getattr(args, "src", None)
     inputs = [*(src if isinstance(src, list) else [src] if src is not None else []),
-              *([args.params_file] if getattr(args, "params_file", None) else [])]
+              *([args.params_file] if getattr(args, "params_file", None) else []),
+              *(getattr(args, "validate", None) or []),  # (tune's other inputs)
+              *(f for f in (getattr(args, "space", None), getattr(args, "start", None)) if f)]
     for out in (getattr(args, "out", None), getattr(args, "report", None)):
         if out is not None:
             check_not_input(out, inputs)  # before any work: one line, exit 2

@@ -70,12 +70,30 @@ def _from_points(points: np.ndarray, stamp: float, xyz: np.ndarray | None = None
     names = points.dtype.names or ()
     if "classification" not in names:
         raise CloudFormatError("clouds have no 'classification' field to evaluate against")
-    pred = np.asarray(points["class"], np.uint8) if "class" in names else None
+    pred = _class_codes(points, "class") if "class" in names else None
     hag = (np.asarray(points["height_above_ground"], np.float32)
            if pred is not None and "height_above_ground" in names else None)
     return LabelledCloud(stamp, xyz_of(points) if xyz is None else xyz,
-                         np.asarray(points["classification"], np.uint8), pred,
+                         _class_codes(points, "classification"), pred,
                          height_above_ground=hag)
+
+
+def _class_codes(points: np.ndarray, name: str) -> np.ndarray:
+    """Field `name` of structured `points` (N,) as ASPRS codes, uint8. CloudFormatError
+    when it holds no codes: more than one value a point, or values that are not whole
+    numbers 0-255, which uint8 made other classes without a word (a UINT16 300 class 44,
+    an INT8 -1 class 255, a FLOAT32 NaN class 0, with numpy's RuntimeWarning)."""
+    values = points[name]
+    if values.ndim != 1:
+        raise CloudFormatError(f"field '{name}' has {values.shape[-1]} values a point, "
+                               "not one class code")
+    if values.dtype.kind != "u" or values.dtype.itemsize != 1:
+        with np.errstate(invalid="ignore"):
+            bad = ~((values >= 0) & (values <= 255) & (np.floor(values) == values))
+        if bad.any():
+            raise CloudFormatError(f"field '{name}' holds {int(bad.sum())} values that are "
+                                   f"no class code (0-255), e.g. {values[bad][0]}")
+    return np.asarray(values, np.uint8)
 
 
 def load_input(path: str | Path, *, topic: str | None = None,
@@ -308,8 +326,9 @@ def evaluate(src: str | Path, *, params_file: str | Path | None = None,
     """All the figures of `lidar-obstacles evaluate` for one input (JSON-ready dict). A
     malformed cloud of a labelled bag stops it unless `skip_malformed` (`load_input`)."""
     from lidar_obstacles.core.metrics import (evaluate_classes, jsonable, latency_stats,
-                                              raised_objects_as_ground)
+                                              parse_blocks, raised_objects_as_ground)
 
+    parse_blocks(blocks)  # a mistyped grid said now, not after the pipeline's run
     if report_dir is not None:
         _check_report_folder(Path(report_dir))  # before the work, not after it
     det_cfg, dem_cfg = _configs(params_file)

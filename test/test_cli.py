@@ -215,10 +215,13 @@ def test_run_with_python_m_a_ctrl_c_inside_an_exec_still_exits_130(tmp_path):
     ["replay", "{bag}", "{bag}"], ["replay", "{bag}/bag_0.mcap", "{bag}"],
     ["simplify", "{bag}", "{tmp}/./bag"], ["features", "{las}", "{las}"],
     ["simplify", "{las}", "{tmp}/link.laz"], ["evaluate", "{bag}", "--report", "{bag}"],
-    ["replay", "{bag}", "{tmp}/params.yaml", "--params-file", "{tmp}/params.yaml"]])
+    ["replay", "{bag}", "{tmp}/params.yaml", "--params-file", "{tmp}/params.yaml"],
+    ["tune", "{las}", "--start", "{tmp}/params.yaml", "--out", "{tmp}/params.yaml"],
+    ["tune", "{las}", "--space", "{tmp}/params.yaml", "--out", "{tmp}/params.yaml"]])
 def test_an_output_that_is_the_input_is_refused_before_any_work(args, tmp_path, capsys):
     # `replay b b` replaced the bag with its own output, `simplify s.laz s.laz` the survey
-    # with 6 842 of its points: exit 0, the input gone
+    # with 6 842 of its points: exit 0, the input gone; `tune --space s.yaml --out s.yaml`
+    # the search space with the tuned parameters
     bag = tmp_path / "bag"
     assert main(["simulate", str(bag), "--duration", "0.1", "--points", "300"]) == 0
     las = _las_file(tmp_path / "s.laz")

@@ -614,3 +614,58 @@ def test_tune_reads_the_topic_it_is_given(tmp_path, capsys):
     assert main(["tune", str(bag), "--topic", "/points", "--out", str(out), "--trials", "1",
                  "--budget", "30s"]) == 0
     assert out.is_file()
+
+
+def test_evaluate_says_a_bad_blocks_grid_before_the_work(tmp_path, monkeypatch, capsys):
+    # `--blocks 0x3` was said only after the pipeline had run on every cloud (16 s for a
+    # 30 s flight), as the figures were computed
+    from lidar_obstacles import evaluate as ev
+    from lidar_obstacles.cli import main
+
+    bag = tmp_path / "flight"
+    assert main(["simulate", str(bag), "--duration", "0.1", "--points", "500"]) == 0
+    capsys.readouterr()
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the input was read before --blocks was checked")
+
+    monkeypatch.setattr(ev, "load_input", no_work)
+    assert main(["evaluate", str(bag), "--blocks", "0x3"]) == 2
+    assert capsys.readouterr().err == ("lidar-obstacles evaluate: error: blocks: nx and ny "
+                                       "must lie in 1..1000, got 0x3\n")
+
+
+@pytest.mark.parametrize("code_type, bad", [("<u2", 300), ("i1", -1), ("<f4", np.nan)])
+def test_evaluate_refuses_classes_that_are_no_class_codes(tmp_path, capsys, code_type, bad):
+    # a UINT16 classification of 300 was scored as class 44, an INT8 -1 as 255, a FLOAT32
+    # NaN as 0 (after numpy's RuntimeWarning): figures of classes the data never had
+    from lidar_obstacles.cli import main
+    from lidar_obstacles.io.bags import POINTCLOUD2, BagReader, BagWriter, typestore
+    from lidar_obstacles.io.pointcloud2 import make_pointcloud2, read_points
+
+    run_cli("simulate", tmp_path / "f", "--duration", "0.2", "--points", "500")
+    types = typestore().types
+    with BagReader(tmp_path / "f") as reader, BagWriter(tmp_path / "wide") as bag:
+        bag.add_topic("/points", POINTCLOUD2)
+        for i, rec in enumerate(reader.records(["/points"])):
+            msg = reader.deserialize(rec)
+            points = read_points(msg)
+            wide = np.zeros(len(points), [("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                          ("classification", code_type)])
+            for name in wide.dtype.names:
+                wide[name] = points[name]
+            if i == 1:
+                wide["classification"][5] = bad
+            out = make_pointcloud2(wide, header=msg.header,
+                                   msg_cls=types["sensor_msgs/msg/PointCloud2"],
+                                   field_cls=types["sensor_msgs/msg/PointField"])
+            bag.write("/points", rec.stamp_ns, bytes(typestore().serialize_cdr(out, POINTCLOUD2)))
+    capsys.readouterr()
+    assert main(["evaluate", str(tmp_path / "wide"), "--no-dem"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lidar-obstacles evaluate: error: cloud 2 on /points (stamp "
+                          "1767225600.100000000 s): field 'classification' holds 1 values that "
+                          f"are no class code (0-255), e.g. {bad}"), err
+    assert len(err.splitlines()) == 1
+    m = run_cli("evaluate", tmp_path / "wide", "--no-dem", "--skip-malformed")
+    assert m["rejected"] == 1 and m["clouds"] == 1

@@ -589,6 +589,29 @@ def test_las2bag_refuses_gps_times_past_what_a_stamp_holds(tmp_path, outlier):
     assert tiled["sliced_by"] == "tiles"
 
 
+@pytest.mark.parametrize("outlier", [-5e9, -1e300, 1e300])
+def test_las2bag_refuses_gps_times_before_what_a_stamp_holds(tmp_path, outlier):
+    """A GPS time before the GPS epoch (adjusted time below -1e9 s) gave a stamp before
+    1970, written as 0, which ROS reads as unset: every cloud of the bag stamped 0, without
+    a word. One of -1e300 s or 1e300 s also printed numpy's RuntimeWarning of the
+    overflowing slice numbers before the error's line."""
+    import laspy
+
+    survey = laspy.LasData(laspy.LasHeader(point_format=1, version="1.2"))
+    survey.x, survey.y, survey.z = (np.linspace(0.0, 100.0, 1000),) * 3
+    gps = np.linspace(0.0, 60.0, 1000)
+    gps[3] = outlier
+    survey.gps_time = gps
+    survey.write(str(tmp_path / "survey.las"))
+    res = cli_subprocess("las2bag", tmp_path / "survey.las", tmp_path / "bag")
+    assert res.returncode == 2, res.stderr
+    assert len(res.stderr.splitlines()) == 1, res.stderr
+    assert res.stderr.startswith(
+        f"lidar-obstacles las2bag: error: GPS time {outlier:.10g} s gives a stamp "
+        + ("before 1970" if outlier < 0 else "past 2038"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["survey.las"]
+
+
 def _stamps(bag: Path) -> list[int]:
     with BagReader(bag) as reader:
         return [reader.deserialize(r).header.stamp.sec * 10**9

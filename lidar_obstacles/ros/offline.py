@@ -148,7 +148,8 @@ def _las_slices(points: np.ndarray, *, has_gps: bool, slice_seconds: float,
                        f"{len(gps)} points (corrupt?): slice by --tile-size instead")
     if tile_size is None and gps is not None and np.ptp(gps) > 0:
         order = np.argsort(gps, kind="stable")
-        key = np.floor((gps[order] - gps[order[0]]) / slice_seconds).astype(np.int64)
+        with np.errstate(invalid="ignore"):  # (a span beyond int64 slices: said below)
+            key = np.floor((gps[order] - gps[order[0]]) / slice_seconds).astype(np.int64)
         cuts = np.flatnonzero(np.diff(key)) + 1
         groups = np.split(order, cuts)
         starts = np.array([gps[g[0]] for g in groups])
@@ -161,6 +162,10 @@ def _las_slices(points: np.ndarray, *, has_gps: bool, slice_seconds: float,
         if base.max() >= 2**31:
             raise LasError(f"GPS time {gps.max():.10g} s gives a stamp past 2038, later than "
                            "a ROS time holds (corrupt GPS times?): slice by --tile-size "
+                           "instead")
+        if base.min() <= 0:  # (before the GPS epoch: written as 0, which reads as unset)
+            raise LasError(f"GPS time {gps.min():.10g} s gives a stamp before 1970, earlier "
+                           "than a ROS time holds (corrupt GPS times?): slice by --tile-size "
                            "instead")
         return groups, np.round(np.maximum(base, 0) * 1e9).astype(np.int64), "gps_time"
     x, y = points["x"], points["y"]
