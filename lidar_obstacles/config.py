@@ -802,7 +802,9 @@ def read_yaml_file(path: str | Path, what: str) -> Any:
         # PyYAML's message starts with its context ("while parsing a flow sequence"); what
         # is wrong, and where, comes after it on lines a one-line error would cut off
         raise ConfigError(f"{what} {path}: {_yaml_problem(exc)}".splitlines()[0]) from None
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+    except OSError as exc:  # (its strerror: str(exc) names the file a second time)
+        raise ConfigError(f"{what} {path}: {exc.strerror or exc}".splitlines()[0]) from None
+    except (UnicodeDecodeError, yaml.YAMLError) as exc:
         raise ConfigError(f"{what} {path}: {exc}".splitlines()[0]) from None
 
 

@@ -168,14 +168,23 @@ def _labelled_clouds(reader, topic: str | None, cfg: NodeInputConfig,
     moving: str | None = None  # the moving-frame warning, judged at the first pose
     ignored_odometry = False
     for rec in reader.records([cloud_topic, *odom]):
-        msg = reader.deserialize(rec)
         if rec.topic in odom:
-            problem = poses.add(pose_of_odometry(msg))
+            problem = poses.add(pose_of_odometry(reader.deserialize(rec)))
             if problem is not None and not ignored_odometry:  # (left out, as the node does)
                 log.warning("evaluate: ignored %s (and any more such)", problem)
                 ignored_odometry = True
             continue
         seen += 1
+        try:
+            msg = reader.deserialize_cloud(rec)
+        except CloudFormatError as exc:  # (no header: the record's time stands for it)
+            if not skip_malformed:
+                raise malformed_cloud(seen, cloud_topic, rec.stamp_ns, exc) from None
+            count_reason(rejected, str(exc))
+            malformed += 1
+            first = first or (f"cloud {seen} (stamp {rec.stamp_ns // 10**9}."
+                              f"{rec.stamp_ns % 10**9:09d} s): {exc}")
+            continue
         stamp_ns = int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
         pose = poses.nearest(stamp_ns, cfg.odometry_max_age)
         if moving is None and pose is not None:

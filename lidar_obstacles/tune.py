@@ -23,6 +23,8 @@ import numpy as np
 
 from lidar_obstacles.config import (
     ObstacleDetectorConfig,
+    ParamInfo,
+    coerce,
     dump_ros_yaml,
     flatten,
     load_params_file,
@@ -73,6 +75,15 @@ class Dimension:
         return int(round(v)) if self.integer else v
 
 
+def _in_space_file(space_file: str | Path, info: ParamInfo, value: Any) -> Any:
+    """`value` of parameter `info` as `coerce` takes it; its ConfigError names the space
+    file (it named only the parameter, as if a params file were wrong)."""
+    try:
+        return coerce(info, value)
+    except ConfigError as exc:
+        raise ConfigError(f"space file {space_file}: {exc}") from None
+
+
 def search_space(space_file: str | Path | None = None) -> list[Dimension]:
     """The tunable parameters of the obstacle detector, optionally narrowed by a YAML file
     ``{name: [min, max]}`` or ``{name: [choice, ...]}`` (names must be declared parameters,
@@ -95,16 +106,12 @@ def search_space(space_file: str | Path | None = None) -> list[Dimension]:
             if info.spec.choices or info.type is bool:
                 choices = tuple(spec)
                 for c in choices:
-                    from lidar_obstacles.config import coerce
-
-                    coerce(info, c)
+                    _in_space_file(space_file, info, c)
                 dims[name] = Dimension(name, choices=choices)
             else:
                 if len(spec) != 2:
                     raise ConfigError(f"space file {space_file}: '{name}' needs [min, max]")
-                from lidar_obstacles.config import coerce
-
-                low, high = (coerce(info, v) for v in spec)
+                low, high = (_in_space_file(space_file, info, v) for v in spec)
                 if low > high:
                     raise ConfigError(f"space file {space_file}: '{name}' min > max")
                 dims[name] = _dimension(name, low, high, (), info.spec.log_scale,

@@ -463,6 +463,18 @@ def test_tune_rejects_bad_space(tmp_path):
     space.write_text("ransac.distance_threshold: [0.1, 2\n")
     with pytest.raises(ConfigError, match=r"space file .*: line 2, column 1: expected ',' or"):
         search_space(space)
+    # a value out of its range or choices names the file (it read as a params file's error)
+    space.write_text("ground.method: [hybrid, bogus]\n")
+    with pytest.raises(ConfigError, match=rf"^space file {space}: parameter 'ground.method': "
+                       "'bogus' is not one of"):
+        search_space(space)
+    space.write_text("ransac.distance_threshold: [-1, 2]\n")
+    with pytest.raises(ConfigError, match=rf"^space file {space}: parameter "
+                       "'ransac.distance_threshold'"):
+        search_space(space)
+    # a folder: its path once ("space file X: [Errno 21] Is a directory: 'X'")
+    with pytest.raises(ConfigError, match=rf"^space file {tmp_path}: Is a directory$"):
+        search_space(tmp_path)
 
 
 def test_run_detector_stops_at_its_deadline_between_clouds(tmp_path):

@@ -409,6 +409,40 @@ def test_replay_makes_stray_points_above_or_below_a_cloud_noise(sim_bag, tmp_pat
         assert np.isnan(stray_points["height_above_ground"]).all()
 
 
+def test_a_cloud_record_that_does_not_decode_is_a_malformed_cloud_named_and_skippable(
+        sim_bag, tmp_path):
+    """A damaged record of the cloud topic (its CDR bytes garbage) stopped replay, evaluate,
+    simplify and features with "cannot decode ..." naming no cloud, and --skip-malformed
+    could not skip it: one bad message of a long flight cost the whole run. Now it is a
+    malformed cloud: named by its number and the record's time, and skipped on request."""
+    from lidar_obstacles.evaluate import evaluate
+    from lidar_obstacles.io.bags import POINTCLOUD2, BagWriter
+    from lidar_obstacles.ros.cloud_tools import simplify
+
+    bad = tmp_path / "garbled"
+    with BagReader(sim_bag) as reader, BagWriter(bad) as out:
+        out.add_topic("/points", POINTCLOUD2)
+        for i, rec in enumerate(reader.records(["/points"])):
+            raw = b"\x00\x01\x00\x00" + b"\xff" * 12 if i == 2 else rec.raw
+            out.write("/points", rec.stamp_ns, raw)
+    named = (r"^cloud 3 on /points \(stamp 1767225600\.200000000 s\): cannot decode a "
+             r"sensor_msgs/msg/PointCloud2 message on /points: .*--skip-malformed")
+    with pytest.raises(CloudFormatError, match=named):
+        offline.replay(bad, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+    summary = offline.replay(bad, tmp_path / "out", skip_malformed=True)
+    assert summary["messages"] == 19 and summary["rejected"] == 1
+    assert summary["last_reject"].startswith("cannot decode a sensor_msgs/msg/PointCloud2")
+    with pytest.raises(CloudFormatError, match=named):
+        evaluate(bad, with_dem=False)
+    result = evaluate(bad, with_dem=False, skip_malformed=True)
+    assert result["clouds"] == 19 and result["rejected"] == 1
+    with pytest.raises(CloudFormatError, match=named):
+        simplify(bad, tmp_path / "simple")
+    assert not (tmp_path / "simple").exists()
+    assert simplify(bad, tmp_path / "simple", skip_malformed=True)["messages"] == 19
+
+
 def test_replay_refuses_a_cloud_too_big_for_its_grids_with_the_reason(sim_bag, tmp_path):
     """Half a cloud 1e15 m above the other half (not a few strays: half of it) overflowed
     its int64 voxel indices (exit 1); now it is rejected and counted, the others replayed."""
@@ -748,6 +782,27 @@ def test_export_dem_writes_no_crs_the_dem_cannot_be_in_and_says_so(sim_bag, tmp_
     assert res.returncode == 2 and res.stderr == (
         "lidar-obstacles export-dem: error: --crs: EPSG:4326 is geographic (WGS 84): its x "
         "and y are degrees, the DEM's cells metres; give the projected CRS of the points\n")
+
+
+def test_a_survey_crs_topic_of_another_type_is_no_crs_and_said(sim_bag, tmp_path, caplog):
+    """/survey_crs recorded as a PointCloud2 (not las2bag's String): its uint8 data was
+    read as the CRS and printed, an array of numbers, in export-dem's warning."""
+    from lidar_obstacles.io.bags import CRS_TOPIC, POINTCLOUD2, BagWriter, read_crs
+
+    bag = tmp_path / "crs_cloud"
+    with BagReader(sim_bag) as reader, BagWriter(bag) as out:
+        out.add_topic(CRS_TOPIC, POINTCLOUD2)
+        out.add_topic("/points", POINTCLOUD2)
+        for record in reader.records(["/points"]):
+            out.write("/points", record.stamp_ns, record.raw)
+            out.write(CRS_TOPIC, record.stamp_ns, record.raw)
+    with BagReader(bag) as reader:
+        assert read_crs(reader) == ""
+    assert (f"/survey_crs of {bag} is a sensor_msgs/msg/PointCloud2, not the "
+            "std_msgs/msg/String that las2bag writes: no survey CRS taken from it"
+            in caplog.text)
+    summary = run_cli("export-dem", bag, tmp_path / "dem.tif")
+    assert summary["crs"] == ""
 
 
 def test_export_dem_lands_on_survey_coordinates(tmp_path):

@@ -10,14 +10,17 @@ so an interrupted run never leaves a half-written bag under the requested name.
 """
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
-from lidar_obstacles.errors import BagError
+from lidar_obstacles.errors import BagError, CloudFormatError
 from lidar_obstacles.io.atomic import partial_prefix, remove_stale_partials, swap_in
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:  # rosbags is imported on first use
     from rosbags.typesys.store import Typestore
@@ -27,6 +30,7 @@ POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 OUTPUT_CLOUDS = ("ground", "obstacles", "dem", "obstacle_edges")
 ODOMETRY = "nav_msgs/msg/Odometry"
 CRS_TOPIC = "/survey_crs"  # std_msgs/String, "EPSG:nnnn" or WKT, written by las2bag
+STRING = "std_msgs/msg/String"
 
 
 def typestore() -> Typestore:
@@ -185,6 +189,16 @@ class BagReader:
             raise BagError(f"cannot decode a {record.msgtype} message on {record.topic}: "
                            f"{text}") from None
 
+    def deserialize_cloud(self, record: BagRecord) -> Any:
+        """`deserialize` of a record of the cloud topic. Bytes that do not decode make it a
+        malformed cloud (CloudFormatError, which the offline commands name by its number
+        and skip with --skip-malformed), not a broken bag: one damaged message of a long
+        flight stopped the whole replay, skip or not."""
+        try:
+            return self.deserialize(record)
+        except BagError as exc:
+            raise CloudFormatError(str(exc)) from None
+
     def count(self, topics: Sequence[str]) -> int:
         """The number of messages on the given topics."""
         return sum(t.count for t in self.topics() if t.topic in topics)
@@ -333,8 +347,15 @@ def _offered_qos(transient_local: bool) -> list:
 
 
 def read_crs(reader: BagReader) -> str:
-    """The survey CRS that las2bag recorded on CRS_TOPIC, or "" when the bag has none."""
-    if not any(t.topic == CRS_TOPIC for t in reader.topics()):
+    """The survey CRS that las2bag recorded on CRS_TOPIC, or "" when the bag has none, or
+    has the topic with another type than las2bag's (said in a warning: its data was read
+    as the CRS, and a uint8 array printed as one)."""
+    crs_topics = [t for t in reader.topics() if t.topic == CRS_TOPIC]
+    if not crs_topics:
+        return ""
+    if crs_topics[0].msgtype != STRING:
+        log.warning("warning: %s of %s is a %s, not the %s that las2bag writes: no survey "
+                    "CRS taken from it", CRS_TOPIC, reader.path, crs_topics[0].msgtype, STRING)
         return ""
     for record in reader.records([CRS_TOPIC]):
         return str(reader.deserialize(record).data)

@@ -230,12 +230,14 @@ def _bag_clouds(src: Path, out: Path, *, topic: str | None, storage: str, out_to
                     continue
                 bar.update(1)
                 seen += 1
-                msg = reader.deserialize(record)
+                msg = None
                 try:
+                    msg = reader.deserialize_cloud(record)
                     msg_out, a, b = keep_of(msg)
                 except CloudFormatError as exc:
-                    if not skip_malformed:
-                        stamp_ns = messages.stamp_ns_of(msg.header)
+                    if not skip_malformed:  # (undecoded: the record's time stands for it)
+                        stamp_ns = (record.stamp_ns if msg is None
+                                    else messages.stamp_ns_of(msg.header))
                         raise malformed_cloud(seen, cloud_topic, stamp_ns, exc) from None
                     count_reason(rejected, str(exc))
                     last_reject = str(exc)

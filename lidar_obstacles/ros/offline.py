@@ -24,8 +24,8 @@ from lidar_obstacles.core.arrays import release_free_memory, reuse_freed_memory
 from lidar_obstacles.errors import (BagError, CloudFormatError, ConfigError, LasError, count_reason,
                                     malformed_cloud)
 from lidar_obstacles.core.pipeline import GroundStep, ObstacleResult
-from lidar_obstacles.io.bags import (CRS_TOPIC, ODOMETRY, POINTCLOUD2, BagReader, BagWriter,
-                                     TopicInfo, read_crs)
+from lidar_obstacles.io.bags import (CRS_TOPIC, ODOMETRY, POINTCLOUD2, STRING, BagReader,
+                                     BagWriter, TopicInfo, read_crs)
 from lidar_obstacles.io.shared_pickle import (BlockPool, SharedPickle, attach, discard_shared,
                                               from_shared, to_shared)
 from lidar_obstacles.ros import messages
@@ -34,8 +34,6 @@ from lidar_obstacles.ros.stages import (DemStage, DetectorStage, DetectorWork, P
                                         moving_frame_warning, pose_of_odometry)
 
 log = logging.getLogger(__name__)
-
-STRING = "std_msgs/msg/String"
 
 # Topics `replay` writes and their types (the nodes' outputs, root namespace).
 OUTPUT_TYPES = {
@@ -566,7 +564,11 @@ class _StageRun:
         `skip_malformed`), is counted as rejected and only the diagnostics follow."""
         self.bar.update(1)
         self.seen += 1
-        msg = self.reader.deserialize(record)
+        try:
+            msg = self.reader.deserialize_cloud(record)
+        except CloudFormatError as exc:  # (no header: the record's time stands for it)
+            yield from self._malformed(exc, record.stamp_ns, record.stamp_ns)
+            return
         stamp_ns = messages.stamp_ns_of(msg.header)
         self._note_stamps(record.stamp_ns, stamp_ns)
         pose = self.poses.nearest(stamp_ns, self.max_age)
@@ -580,12 +582,7 @@ class _StageRun:
         try:
             deferred, dem_items, n_points = self._start(msg, pose, stamp_ns, record.stamp_ns)
         except CloudFormatError as exc:
-            if not self.skip_malformed:
-                raise malformed_cloud(self.seen, self.cloud_topic, stamp_ns, exc) from None
-            self.stats.rejected += 1
-            count_reason(self.stats.reject_reasons, str(exc))
-            self.stats.last_reject = str(exc)
-            yield from self._detector_diagnostics(stamp_ns, record.stamp_ns)
+            yield from self._malformed(exc, stamp_ns, record.stamp_ns)
             return
         self._note_restart(deferred)
         self._count(n_points, t0)
@@ -593,6 +590,18 @@ class _StageRun:
             yield DEFERRED, record.stamp_ns, job
         yield from dem_items
         yield from self._detector_diagnostics(stamp_ns, record.stamp_ns)
+
+    def _malformed(self, exc: CloudFormatError, stamp_ns: int, record_ns: int
+                   ) -> Iterator[tuple[str, int, Any]]:
+        """A malformed cloud (stamp_ns its header's stamp): the run stopped with an error
+        naming it, or, with `skip_malformed`, counted as rejected, and only the detector's
+        diagnostics follow if due."""
+        if not self.skip_malformed:
+            raise malformed_cloud(self.seen, self.cloud_topic, stamp_ns, exc) from None
+        self.stats.rejected += 1
+        count_reason(self.stats.reject_reasons, str(exc))
+        self.stats.last_reject = str(exc)
+        yield from self._detector_diagnostics(stamp_ns, record_ns)
 
     def _note_stamps(self, record_ns: int, stamp_ns: int) -> None:
         """A cloud's times: the recording's span, by the bag's own times (a header stamp
