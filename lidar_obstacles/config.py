@@ -130,7 +130,7 @@ class InputConfig:
                        "`points` subscription and of the node's inbox; a cloud pushed out is "
                        "counted, `dropped_superseded`): 1 processes the "
                        "newest cloud and drops one that waited (publish-to-obstacles latency "
-                       "p50/p95 60/78 ms at 10 Hz on 2 cores in `bench_pipeline.py`; once "
+                       "p50/p95 44/64 ms at 10 Hz on 2 cores in `bench_pipeline.py`; once "
                        "116/190 ms against 208/302 ms with depth 2, the clouds waiting); "
                        "raise it to process every cloud when the machine keeps up",
                        "messages", min=1, max=100, read_only=True)
@@ -223,9 +223,8 @@ class ContextConfig:
     radius: float = param(100.0, "ground of earlier messages within this distance of the "
                           "new message is used as context (0: off). Measured on simulated "
                           "flights (`bench_scan_ground.py`, mixed/corridor/forest/urban): "
-                          "objects taken for ground 7.2/1.20/0.31/0.65 % off, "
-                          "6.7/1.14/0.30/0.60 % on; 1-3 ms more per 50k-point message "
-                          "(12 ms on the urban flight)",
+                          "objects taken for ground 7.2/1.20/0.31/0.64 % off, "
+                          "6.7/1.14/0.30/0.60 % on; 2-4 ms more per 50k-point message",
                           "m", min=0.0, max=2000.0)
     seconds: float = param(10.0, "ground older than this is forgotten", "s",
                            min=0.0, max=3600.0)
@@ -336,7 +335,7 @@ class FeaturesConfig:
     method: str = param(
         "fast", "`faithful` the paper's: every point's triangle normals clustered, float64; "
         "`fast` float32 and points flat by PCA (l3/l2 < 0.05) taken as planes without "
-        "clustering: 1.4-2.7 x faster on real scans (AHN4 buildings 3.5-4.0 -> 1.2-1.3 s "
+        "clustering: 1.4-2.9 x faster on real scans (AHN4 buildings 3.5-4.0 -> 1.2-1.3 s "
         "per 10 000 points) and far fewer false features on noisy flat faces (precision "
         "0.99 against 0.40 on a box with 2 cm noise)",
         choices=("faithful", "fast"))
@@ -395,7 +394,7 @@ class DemConfig:
     ground_source: str = param("detector", "where the DEM's ground comes from: `kmeans` "
                                "(intensity K-means + TIN outlier checks), `detector` "
                                "(the obstacle detector's ground filter; the default: "
-                               "~25 ms per 50k-point message in `bench_pipeline.py`, "
+                               "~20 ms per 50k-point message in `bench_pipeline.py`, "
                                "against 1-2 s for kmeans), or `input`: the input is "
                                "obstacle_detector's `ground` already (remap points:=ground; "
                                "its class 2 points with their height_above_ground), so a "
@@ -422,7 +421,7 @@ class DemConfig:
         "they stand `patch_rise` above or `patch_sink` below the ground beside them: tree "
         "crowns and roofs taken for ground, clusters of low blunders (end-to-end RMSE, "
         "kriging: AHN corridor 07CZ2 0.32 -> 0.02 m, 12AN2 0.16 -> 0.05 m, ISPRS samp41 "
-        "3.8 -> 0.76 m; 0: keep them)", "m^2", min=0.0, max=100000.0)
+        "3.8 -> 1.0 m; 0: keep them)", "m^2", min=0.0, max=100000.0)
     patch_rise: float = param(
         1.0, "a ground patch more than this above the ground beside it is dropped (see "
         "`patch_area`)", "m", min=0.1, max=100.0)
