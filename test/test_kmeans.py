@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import warnings
 
 import numpy as np
 import pytest
@@ -70,6 +71,20 @@ def test_elbow_finds_k_on_blobs():
     assert multi.k == 5
     assert len(multi.result.labels) == len(x)  # every sample assigned, not just the subset
     assert len(np.unique(multi.result.labels)) == 5
+
+
+@pytest.mark.parametrize("x", [np.repeat([0.0, 10.0, 11.0], 30),  # one feature: SSE 0 at 3
+                               np.repeat(np.eye(4), 30, axis=0),  # 4 rows: SSE 0 at k = 4
+                               np.repeat(np.eye(3) * [1.0, 10.0, 11.0], 30, axis=0)])
+def test_elbow_of_a_few_distinct_samples_is_their_number(x):
+    # the sweep stopped at the first SSE of 0 and the knee of that curve was k = 1; with
+    # several features it swept on past the distinct rows, a ConvergenceWarning each k
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        res = elbow_kmeans(x, max_k=10)
+    distinct = len(np.unique(x, axis=0))
+    assert res.k == distinct and len(res.sse) == distinct
+    assert len(np.unique(res.result.labels)) == distinct
 
 
 def test_knee_of_flat_and_sharp_curves():

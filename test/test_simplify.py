@@ -86,6 +86,16 @@ def test_tin_raster_correlation_full_set_is_one_and_bad_subset_lower():
     assert tin_raster_correlation(even, xyz, cell=0.5) > r_bad
 
 
+@pytest.mark.parametrize("z", [0.0, 12.5, 100.3])
+def test_tin_raster_correlation_of_a_flat_cloud_is_nan(z):
+    # both rasters are constant, but for the TIN's rounding (4e-14 m at 100.3 m): the r of
+    # that noise came out as any number (0.70 at 100.3 m, -0.003 at 12.5 m)
+    rng = np.random.default_rng(0)
+    xyz = np.column_stack([rng.uniform(0, 50, (3000, 2)), np.full(3000, z)])
+    assert np.isnan(tin_raster_correlation(xyz[::5], xyz, cell=1.0))
+    assert np.isnan(simplify(xyz, cfg=FAST).r)  # (FAST validates)
+
+
 # --------------------------------------------------------------------------- selection
 
 

@@ -235,20 +235,30 @@ def elbow_kmeans(x: np.ndarray, *, max_k: int = 10, restarts: int = 10, max_iter
     well-separated intensity classes; 4 on the log scale). Several features and more
     than ``sample_size`` samples: the sweep runs on a random subset of that size and every
     sample then joins its nearest centre (the SSE curve is the subset's). The sweep stops
-    early once the SSE is 0. Deterministic for a given seed.
+    early once the SSE is 0, or at as many centres as distinct samples (scikit-learn's SSE
+    there is ~1e-30, and each k beyond it printed a ConvergenceWarning); the knee is then
+    of the curve as the whole sweep would have made it, the last SSE on to max_k (of a
+    curve ending at its first 0 it was k = 1: 4 distinct rows, 3 separated values).
+    Deterministic for a given seed.
     """
     gen = np.random.default_rng(rng)
     arr = np.asarray(x, dtype=np.float64)
     fit = arr
     if arr.ndim == 2 and arr.shape[1] > 1 and len(arr) > sample_size:
         fit = arr[gen.choice(len(arr), sample_size, replace=False)]
+    last = max(1, min(max_k, len(fit)))
+    # (one feature: the SSE reaches 0 there exactly)
+    distinct = len(np.unique(fit, axis=0)) if fit.ndim == 2 and fit.shape[1] > 1 else last
     results: list[KmeansResult] = []
-    for k in range(1, max(1, min(max_k, len(fit))) + 1):
+    for k in range(1, min(last, distinct) + 1):
         results.append(kmeans(fit, k, restarts=restarts, max_iter=max_iter, tol=tol, rng=gen))
         if results[-1].sse <= 0.0:
             break
     sse = np.array([r.sse for r in results])
-    best = knee_index(np.log(sse + 1e-12 * sse[0] + 1e-300)) if len(sse) >= 3 else len(sse) - 1
+    curve = np.concatenate([sse, np.full(last - len(sse), sse[-1])])
+    best = (knee_index(np.log(curve + 1e-12 * curve[0] + 1e-300)) if len(curve) >= 3
+            else len(curve) - 1)
+    best = min(best, len(results) - 1)  # (the first of the equal last ones at most)
     chosen = results[best]
     if fit is not arr:
         centres = chosen.centres
