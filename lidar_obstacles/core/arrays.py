@@ -145,6 +145,23 @@ def snap_micrometres(a: np.ndarray) -> np.ndarray:
     return a
 
 
+# A grid over a cloud holds at most this many cells per point (and SPARSE_MIN_CELLS
+# whatever the points): a cloud far sparser than its grid is gridded on coarser cells
+# (`sparse_grid_cell`). A driver's millimetres taken for metres makes such clouds. Real
+# scans lie far below it: ISPRS's sparsest sample, samp53, has ~6 cells of 1 m per point.
+SPARSE_CELLS_PER_POINT = 64
+SPARSE_MIN_CELLS = 250_000
+
+
+def sparse_grid_cell(cell: float, lo: np.ndarray, hi: np.ndarray, n: int) -> float:
+    """The cell (m) for a grid over the box lo..hi ((2,) m) of n points: `cell`, or its
+    smallest whole multiple that keeps the grid within max(SPARSE_MIN_CELLS,
+    SPARSE_CELLS_PER_POINT n) cells when `cell` would make more."""
+    cells = float(np.prod(np.floor((np.asarray(hi) - np.asarray(lo)) / cell) + 1))
+    limit = max(SPARSE_MIN_CELLS, SPARSE_CELLS_PER_POINT * n)
+    return cell if cells <= limit else cell * float(np.ceil(np.sqrt(cells / limit)))
+
+
 def distinct_points(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """The distinct points of xyz (N, 3) float64: (first (U,) the index of each one's first
     occurrence, ascending, and inverse (N,) which of them each point is), or None when no

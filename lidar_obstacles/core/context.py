@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from lidar_obstacles.config import ContextConfig
-from lidar_obstacles.core.arrays import column_min, unique_ints
+from lidar_obstacles.core.arrays import column_max, column_min, sparse_grid_cell, unique_ints
 
 
 # Cells are kept under one int64 key: (i + OFFSET) * SPAN + (j + OFFSET). Sorting and
@@ -165,6 +165,9 @@ def _inside(xy: np.ndarray, cloud_xy: np.ndarray, cell: float, margin: float) ->
     slices: ground kappa 0.774 -> 0.853 (0.920 with `context.seconds` 3600)."""
     from scipy import ndimage
 
+    # (a cloud far sparser than its grid, 50 points over 5 km: coarser cells, not 25
+    # million of them and a distance transform of ~1 GB)
+    cell = sparse_grid_cell(cell, column_min(cloud_xy), column_max(cloud_xy), len(cloud_xy))
     lo = column_min(cloud_xy) - cell
     # one column at a time: (M, 2) temporaries cost ~2 x as much (~1 ms per message)
     col, row = (np.floor((cloud_xy[:, a] - lo[a]) / cell).astype(np.int64) for a in (0, 1))

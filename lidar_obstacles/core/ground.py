@@ -52,6 +52,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from lidar_obstacles.config import GroundConfig, RansacConfig, TilingConfig, TinConfig
 from lidar_obstacles.core.arrays import (all_columns, cell_index, column_max, column_min,
+                                         sparse_grid_cell,
                                          lowest_per_cell, points_xyz, snap_micrometres,
                                          tree_query)
 from lidar_obstacles.core.ransac import ransac_plane
@@ -1484,6 +1485,20 @@ def _drop_peaks(raster: _Raster, labels: _Labels, opening: _Opening, cfg: Hybrid
     return peaks
 
 
+def _sparse_cell(pts: np.ndarray, fixed: np.ndarray | None, cfg: HybridSettings
+                 ) -> HybridSettings:
+    """`cfg`, with a coarser cell when points (N, 3) and context (F, 3) m are far sparser
+    than its grid (`sparse_grid_cell`): 50 points spread over 5 x 5 km made 25 million
+    cells of 1 m to in-paint, 13 s and 3.6 GB for one cloud."""
+    import dataclasses
+
+    parts = [p[:, :2] for p in (pts, fixed) if p is not None and len(p)]
+    lo = np.min([column_min(p) for p in parts], axis=0)
+    hi = np.max([column_max(p) for p in parts], axis=0)
+    cell = sparse_grid_cell(cfg.cell, lo, hi, sum(len(p) for p in parts))
+    return cfg if cell == cfg.cell else dataclasses.replace(cfg, cell=cell)
+
+
 def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
                          fixed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Raster ground filter (progressive morphological opening, as SMRF, made robust).
@@ -1498,8 +1513,10 @@ def morphological_ground(pts: np.ndarray, cfg: HybridSettings, *,
     rounds against the rebuilt surface (`_label_rounds`); then, on dense scans, raised
     islands and pits out (`_drop_islands_and_pits`); rims and cliff faces in
     (`_add_rims_and_faces`) and, on sparse scans, single raised points out
-    (`_drop_peaks`); the surface rebuilt when they changed the ground.
+    (`_drop_peaks`); the surface rebuilt when they changed the ground. A cloud far
+    sparser than its grid of `cfg.cell` is filtered on coarser cells (`_sparse_cell`).
     """
+    cfg = _sparse_cell(pts, fixed, cfg)
     c = cfg.cell
     raster = _Raster.of(pts, fixed, cfg)
     low, zmin = _low_blunders(raster, cfg)
