@@ -239,11 +239,21 @@ def test_rolling_dem_refines_cells_and_fills_gaps():
 
 
 def test_rolling_dem_whole_flight_respects_max_cells():
+    """Past dem.max_cells the whole-flight grid becomes a window of that many cells around
+    the latest data: each 20 x 20 m patch is then in it whole, the earlier ones gone (a
+    window left at the flight's start, or an empty grid, is small enough too)."""
     cfg = _cfg(**{"dem.extent": 0.0, "dem.max_cells": 2500, "dem.interpolation": "idw"})
     dem = RollingDem(cfg)
     for x0 in (0.0, 200.0, 400.0):
-        dem.update(_plane_points(x0, x0 + 20, 1.0), None, x0)
-        assert dem.snapshot().elevation.size <= 2500
+        patch = _plane_points(x0, x0 + 20, 1.0)
+        dem.update(patch, None, x0)
+        snap = dem.snapshot()
+        assert snap.elevation.size <= 2500
+        assert snap.count.sum() == len(patch) == 400  # all of the latest, none of the rest
+        assert (snap.origin <= x0).all() and (snap.origin + snap.shape[::-1] >= x0 + 20).all()
+        measured = snap.count > 0
+        assert np.allclose(snap.elevation[measured], plane_at(snap.cell_centres()[measured]),
+                           atol=1e-4)
 
 
 def test_real_isprs_dem_from_reference_ground():
