@@ -75,14 +75,33 @@ def test_report(tmp_path, cloud):
     assert loaded == metrics
 
 
-def test_real_corridor_views(tmp_path):
+def test_real_corridor_views(tmp_path, monkeypatch):
+    """A power-line corridor over `max_points`: 20 000 of its 38 721 points are drawn, yet
+    every wire and tower point, on top in both views (the picture's width is fixed, so its
+    size alone said nothing of what was drawn)."""
     from lidar_obstacles.io.las import read_las
 
     c = read_las(data_file("ahn-corridor/07CZ2_14.laz"))
     xyz = c.xyz[::20]
     ref = c.points["classification"][::20]
+    drawn = []
+    map_views = R._map_views
+
+    def spy(sub, colours, emphasised, order_top, order_side, *args, **kwargs):
+        drawn.append((sub, emphasised, order_top, order_side))
+        return map_views(sub, colours, emphasised, order_top, order_side, *args, **kwargs)
+
+    monkeypatch.setattr(R, "_map_views", spy)
     w, h = png_size(R.cloud_views_png(xyz, ref, tmp_path / "v.png", max_points=20_000))
     assert w == 11 * R.DPI and h > 1000
+    ((sub, emphasised, order_top, order_side),) = drawn
+    thin = np.isin(ref, (14, 15))
+    assert len(ref) == 38_721 and thin.sum() == 876 and len(sub) == 20_000
+    assert emphasised.sum() == thin.sum()  # not one wire or tower point left out
+    assert {tuple(p) for p in sub[emphasised]} == {tuple(p) for p in xyz[thin]}
+    for order in (order_top, order_side):  # drawn last: over the ground and the trees
+        assert np.array_equal(np.sort(order), np.arange(len(sub)))
+        assert emphasised[order][-876:].all()
 
 
 def test_report_files_get_the_mode_open_would_give(tmp_path):
