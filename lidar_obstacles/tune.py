@@ -238,6 +238,17 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
     if best is None:
         raise ConfigError("the budget ended before a single candidate was scored")
     best_cfg = replace(start, best["params"])
+    check = None
+    if held_out:  # before the file is written: a stop in this scoring leaves no file
+        before = _scored(held_out, start, objective)
+        after = _scored(held_out, best_cfg, objective)
+        check = {"inputs": [i.name for i in held_out],
+                 "start_score": before["score"], "best_score": after["score"],
+                 "start_objective": before["objective"], "best_objective": after["objective"],
+                 # the same configuration scores the same: neither better nor worse
+                 "unchanged": best["params"] == trials[0]["params"]
+                 or after["score"] == before["score"]}
+        check["improved"] = not check["unchanged"] and after["score"] > before["score"]
     try:
         atomic_write_text(out, "# Written by `lidar-obstacles tune`: the best candidate of "
                           f"{len(trials)} on {', '.join(i.name for i in inputs)}.\n"
@@ -264,16 +275,7 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
         "best_params": best["params"], "sensitivity": sensitivity,
         "inputs": [i.name for i in inputs],
     }
-    if held_out:
-        before = _scored(held_out, start, objective)
-        after = _scored(held_out, best_cfg, objective)
-        check = {"inputs": [i.name for i in held_out],
-                 "start_score": before["score"], "best_score": after["score"],
-                 "start_objective": before["objective"], "best_objective": after["objective"],
-                 # the same configuration scores the same: neither better nor worse
-                 "unchanged": best["params"] == trials[0]["params"]
-                 or after["score"] == before["score"]}
-        check["improved"] = not check["unchanged"] and after["score"] > before["score"]
+    if check is not None:
         summary["validation"] = check
         if not check["improved"] and not check["unchanged"]:
             log.warning("tune: warning: the best candidate scores %.4f on the held-out "

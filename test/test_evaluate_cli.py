@@ -543,6 +543,28 @@ def test_tune_on_one_input_scores_every_candidate_and_warns_when_held_out_is_wor
     assert (tmp_path / "t.yaml").exists()
 
 
+def test_tune_stopped_in_the_held_out_scoring_leaves_no_params_file(tmp_path, monkeypatch):
+    """The held-out scoring is part of the run: Ctrl-C there leaves no params file (it was
+    written before it, and left in place with exit status 130)."""
+    from lidar_obstacles import tune
+
+    monkeypatch.setattr(tune, "load_input", lambda path, cfg, skip_malformed, topic: LabelledInput(
+        Path(path).name, "las", [], None))
+
+    def score(inp, cfg, objective, deadline=None):
+        if inp.name == "held.laz":
+            raise KeyboardInterrupt
+        return {"score": 0.9, "objective": 0.9}
+
+    monkeypatch.setattr(tune, "score_input", score)
+    space = tmp_path / "space.yaml"
+    space.write_text("ransac.distance_threshold: [0.05, 1.0]\n")
+    with pytest.raises(KeyboardInterrupt):
+        tune.tune([tmp_path / "one.laz"], validate=[tmp_path / "held.laz"],
+                  out=tmp_path / "t.yaml", max_trials=3, space_file=space)
+    assert not (tmp_path / "t.yaml").exists()
+
+
 def test_tune_reports_a_lower_is_better_objective_in_its_own_sign(tmp_path):
     """`--objective total_error`: the score is the error negated (higher is better), the
     objective is the total error itself, and a start that stays the best is `unchanged`
