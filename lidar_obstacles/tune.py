@@ -265,7 +265,8 @@ def tune(sources: list[Path], *, validate: list[Path] | None = None, out: Path,
                      for c in d.choices if c in vals}
             sensitivity[d.name] = {"mean_score_by_choice": means}
         elif len(set(vals)) > 2:
-            rho = spearmanr(vals, ys).statistic
+            # the same score whatever the value: no effect (rho is undefined there)
+            rho = spearmanr(vals, ys).statistic if len(set(ys)) > 1 else 0.0
             sensitivity[d.name] = {"spearman_rho": None if np.isnan(rho) else float(rho)}
     summary = {
         "params_file": str(out), "objective": objective, "trials": len(trials),

@@ -565,6 +565,26 @@ def test_tune_stopped_in_the_held_out_scoring_leaves_no_params_file(tmp_path, mo
     assert not (tmp_path / "t.yaml").exists()
 
 
+def test_tune_gives_a_parameter_with_no_effect_a_sensitivity_of_0(tmp_path, monkeypatch):
+    """Every candidate scoring the same (a parameter the method in use ignores): its
+    sensitivity is 0, not None, and no scipy warning is printed."""
+    import warnings
+
+    from lidar_obstacles import tune
+
+    monkeypatch.setattr(tune, "load_input", lambda path, cfg, skip_malformed, topic: LabelledInput(
+        Path(path).name, "las", [], None))
+    monkeypatch.setattr(tune, "score_input", lambda inp, cfg, objective, deadline=None: {
+        "score": 0.9, "objective": 0.9})
+    space = tmp_path / "space.yaml"
+    space.write_text("ground.method: [hybrid]\ntiling.size: [5, 1000]\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        summary = tune.tune([tmp_path / "one.laz"], out=tmp_path / "t.yaml", max_trials=6,
+                            space_file=space)
+    assert summary["sensitivity"]["tiling.size"] == {"spearman_rho": 0.0}
+
+
 def test_tune_reports_a_lower_is_better_objective_in_its_own_sign(tmp_path):
     """`--objective total_error`: the score is the error negated (higher is better), the
     objective is the total error itself, and a start that stays the best is `unchanged`
